@@ -1,0 +1,115 @@
+"""``dob-hil``: the command line. Argument parsing is split from running so both are testable.
+
+Heavy modules (numpy, scipy, control, can, mcap, matplotlib) are imported inside the handlers,
+so ``dob-hil --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from importlib import import_module
+
+from dob_hil import __version__
+from dob_hil.errors import DobHilError
+
+# Each subcommand: (module with a main(args) -> int, help).
+_COMMANDS: dict[str, tuple[str, str]] = {
+    "design": ("dob_hil.commands.design", "design the controller from a config and report it"),
+    "run": ("dob_hil.commands.run", "run the controller against a drive (default: simulated)"),
+    "demo": ("dob_hil.commands.demo", "the paper's step scenario with and without the DOB"),
+    "analyze": ("dob_hil.commands.analyze", "metrics and plots from MCAP logs"),
+    "replay": ("dob_hil.commands.replay", "re-run, re-design or re-send a logged run"),
+    "export": ("dob_hil.commands.export", "write a log's frames as BLF/ASC/CSV"),
+}
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """python-can's usual bus options; omitted values come from python-can's config/env."""
+    parser.add_argument("-i", "--interface", help="python-can interface (socketcan, udp_multicast, ...)")
+    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, 239.74.163.2, ...)")
+    parser.add_argument("-b", "--bitrate", type=int, help="bus bitrate in bit/s")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dob-hil",
+        description="Hardware-in-the-loop bridge: a discrete-time state-space disturbance "
+        "observer controller (Lee, Kim, Baek, ACC 2000) against a servo drive over CAN.",
+    )
+    parser.add_argument("--version", action="version", version=f"dob-hil {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in _COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        _add_arguments(name, p)
+    return parser
+
+
+def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
+    # Arguments are declared here (not in the command modules) so --help imports nothing heavy.
+    if name == "design":
+        p.add_argument("config", help="TOML config (or a scenario name such as paper-step)")
+        p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+        p.add_argument("--out", help="output folder for the design file and plots")
+        p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    elif name == "run":
+        p.add_argument("config", nargs="?", help="TOML config file")
+        p.add_argument("--scenario", help="a shipped scenario: paper-step or paper-sine")
+        add_bus_arguments(p)
+        p.add_argument("--no-dob", action="store_true", help="switch the disturbance observer off")
+        p.add_argument("--duration", type=float, help="run length in seconds")
+        p.add_argument("--log", help="MCAP log path (default: logs/<name>-<time>.mcap)")
+        p.add_argument("--realtime", action="store_true",
+                       help="real-time loop even without a bus (embedded drive on its own clock)")
+        p.add_argument("--sched-fifo", action="store_true", help="SCHED_FIFO where permitted")
+        p.add_argument("--cpu", type=int, action="append", help="pin the loop to this CPU")
+        p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() and gc.disable()")
+        p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    elif name == "demo":
+        p.add_argument("--scenario", default="paper-step", help="scenario to run (default paper-step)")
+        p.add_argument("--out", default="logs", help="folder for logs and plots")
+    elif name == "analyze":
+        p.add_argument("logs", nargs="+", help="one or more MCAP logs")
+        p.add_argument("--json", action="store_true", help="print the metrics as JSON on stdout")
+        p.add_argument("--from", dest="from_s", type=float, default=0.1,
+                       help="start of the metrics window in seconds (default 0.1)")
+        p.add_argument("--plots", help="folder for the PNG plots (default: beside the log)")
+        p.add_argument("--no-plots", action="store_true", help="skip the plots")
+    elif name == "replay":
+        p.add_argument("log", help="MCAP log")
+        g = p.add_mutually_exclusive_group(required=True)
+        g.add_argument("--verify", action="store_true", help="check every command bit for bit")
+        g.add_argument("--design", help="another config/design: what it would have commanded")
+        g.add_argument("--to-bus", action="store_true", help="play the raw frames onto a bus")
+        add_bus_arguments(p)
+        p.add_argument("--json", action="store_true", help="print the result as JSON")
+    elif name == "export":
+        p.add_argument("log", help="MCAP log")
+        p.add_argument("--format", required=True, choices=("blf", "asc", "csv"))
+        p.add_argument("--out", help="output path (default: beside the log)")
+        p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_module", None):
+        parser.print_help()
+        return 2
+    try:
+        module = import_module(args._module)
+        run: Callable[[argparse.Namespace], int] = module.main
+        return run(args)
+    except DobHilError as exc:
+        print(f"dob-hil {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dob-hil {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
