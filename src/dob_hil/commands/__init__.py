@@ -1,0 +1,1 @@
+"""One module per ``dob-hil`` subcommand, each with ``main(args) -> int``."""
