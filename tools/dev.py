@@ -35,8 +35,7 @@ def _ensure_env() -> None:
         venv.EnvBuilder(with_pip=True).create(VENV)
     print("dev: installing dob-hil and its dependencies into .venv", flush=True)
     subprocess.run(
-        [_python(), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-         "-e", f"{ROOT}[dev]"],
+        [_python(), "-m", "pip", "install", "--quiet", "--disable-pip-version-check", "-e", f"{ROOT}[dev]"],
         check=True,
         cwd=ROOT,
     )
@@ -45,7 +44,7 @@ def _ensure_env() -> None:
 
 def _run(cmd: list[str]) -> int:
     print("dev: $ " + " ".join(cmd), flush=True)
-    return subprocess.run(cmd, cwd=ROOT).returncode
+    return subprocess.run(cmd, check=False, cwd=ROOT).returncode
 
 
 def main(argv: list[str]) -> int:

@@ -61,8 +61,11 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--no-dob", action="store_true", help="switch the disturbance observer off")
         p.add_argument("--duration", type=float, help="run length in seconds")
         p.add_argument("--log", help="MCAP log path (default: logs/<name>-<time>.mcap)")
-        p.add_argument("--realtime", action="store_true",
-                       help="real-time loop even without a bus (embedded drive on its own clock)")
+        p.add_argument(
+            "--realtime",
+            action="store_true",
+            help="real-time loop even without a bus (embedded drive on its own clock)",
+        )
         p.add_argument("--sched-fifo", action="store_true", help="SCHED_FIFO where permitted")
         p.add_argument("--cpu", type=int, action="append", help="pin the loop to this CPU")
         p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() and gc.disable()")
@@ -74,8 +77,13 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
     elif name == "analyze":
         p.add_argument("logs", nargs="+", help="one or more MCAP logs")
         p.add_argument("--json", action="store_true", help="print the metrics as JSON on stdout")
-        p.add_argument("--from", dest="from_s", type=float, default=0.1,
-                       help="start of the metrics window in seconds (default 0.1)")
+        p.add_argument(
+            "--from",
+            dest="from_s",
+            type=float,
+            default=0.1,
+            help="start of the metrics window in seconds (default 0.1)",
+        )
         p.add_argument("--plots", help="folder for the PNG plots (default: beside the log)")
         p.add_argument("--no-plots", action="store_true", help="skip the plots")
     elif name == "replay":

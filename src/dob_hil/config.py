@@ -151,7 +151,7 @@ class _Section:
         if key not in self.data:
             return None
         arr = self.matrix(key)
-        if arr is None or arr.shape[0] != 1 and arr.shape[1] != 1:
+        if arr is None or (arr.shape[0] != 1 and arr.shape[1] != 1):
             raise ConfigError(self.name(key), "expected a list of numbers")
         flat = tuple(float(v) for v in arr.ravel())
         if positive and any(v <= 0 for v in flat):
@@ -187,9 +187,7 @@ def _kind(value: object) -> str:
     return type(value).__name__
 
 
-def parse_matrix(
-    value: object, name: str, shape: tuple[int | None, int | None] | None = None
-) -> Matrix:
+def parse_matrix(value: object, name: str, shape: tuple[int | None, int | None] | None = None) -> Matrix:
     """Parse a TOML number, list or list of lists into a finite 2-D float64 array."""
     if isinstance(value, bool):
         raise ConfigError(name, f"expected a matrix of numbers, got {_kind(value)}")
@@ -222,9 +220,7 @@ def parse_matrix(
         arr = arr.T  # a flat list where a column is expected: ``Lc = [0.75, 0.5]``
     if shape is not None:
         want_r, want_c = shape
-        if (want_r is not None and arr.shape[0] != want_r) or (
-            want_c is not None and arr.shape[1] != want_c
-        ):
+        if (want_r is not None and arr.shape[0] != want_r) or (want_c is not None and arr.shape[1] != want_c):
             want = f"{'n' if want_r is None else want_r}x{'n' if want_c is None else want_c}"
             raise ConfigError(name, f"expected shape {want}, got {arr.shape[0]}x{arr.shape[1]}")
     return arr

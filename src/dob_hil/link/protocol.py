@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import enum
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -238,7 +239,7 @@ def decode_heartbeat(data: bytes | bytearray | memoryview) -> HeartbeatFrame:
         raise ProtocolError(f"HEARTBEAT frame: unknown drive state {data[0]}") from None
 
 
-_DECODERS = {
+_DECODERS: Final[dict[FrameKind, Callable[[bytes | bytearray | memoryview], Frame]]] = {
     FrameKind.FAULT: decode_fault,
     FrameKind.FEEDBACK: decode_feedback,
     FrameKind.COMMAND: decode_command,

@@ -27,5 +27,4 @@ def resolve_config_path(arg: str) -> Path:
         return path
     if path.suffix == "" and (_HERE / f"{arg}.toml").is_file():
         return _HERE / f"{arg}.toml"
-    raise ConfigError(arg, "no such config file (and not a shipped scenario: "
-                      f"{', '.join(scenario_names())})")
+    raise ConfigError(arg, f"no such config file (and not a shipped scenario: {', '.join(scenario_names())})")
