@@ -1,0 +1,1 @@
+"""The pure controller: the step and the reference generators."""

@@ -1,0 +1,144 @@
+"""One control cycle: feedback in, pure step, command out, sample to the logger.
+
+This is the part shared by the lockstep and the real-time runners. It owns the controller state
+(``x_bar``) and the missing-feedback policy; it never touches frames (the link does) and never
+writes a file (the log writer's process does).
+
+Missing or stale feedback (``run.missing_feedback_policy``, bounded by ``run.max_missing_periods``
+consecutive samples):
+
+- ``hold``: the estimator is given the last measured output again;
+- ``extrapolate``: the measurement update is skipped (``x_hat = x_bar``: the model's prediction);
+- ``zero``: zero current is commanded for that sample (the estimator still predicts with it).
+
+Beyond ``max_missing_periods`` consecutive missing samples the cycle commands zero current; at
+``drive.feedback_timeout_periods`` the runner stops the run (host timeout) with the drive at zero.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from dob_hil.control.reference import Reference
+from dob_hil.control.step import StepFunctions
+from dob_hil.link.base import DriveLink, Feedback
+from dob_hil.log import LogWriter
+
+FLAG_SATURATED = 0x01
+FLAG_OVERRUN = 0x02
+FLAG_MISSING = 0x04
+FLAG_DOB_ON = 0x08
+
+
+@dataclass
+class CycleStats:
+    samples: int = 0
+    saturated: int = 0
+    missing: int = 0
+    overruns: int = 0
+    skipped: int = 0
+    max_consecutive_missing: int = 0
+    max_abs_applied_A: float = 0.0
+    compute_ns_max: int = 0
+    events: dict[str, int] = field(default_factory=dict)
+
+
+class ControlCycle:
+    """Holds the controller state; :meth:`on_feedback` and :meth:`on_missing` run one sample each."""
+
+    def __init__(
+        self,
+        step: StepFunctions,
+        reference: Reference,
+        link: DriveLink,
+        log: LogWriter,
+        *,
+        dob_enabled: bool,
+        missing_policy: str,
+        max_missing_periods: int,
+        C_rows: tuple[tuple[float, ...], ...],
+        initial_x_bar: tuple[float, ...] | None = None,
+        clock_ns: Callable[[], int] = time.perf_counter_ns,
+    ) -> None:
+        self._update = step.update
+        self._predict = step.predict
+        self._ref_at = reference.at
+        self._link = link
+        self._log = log
+        self._clock_ns = clock_ns
+        self.n_states = step.n_states
+        self.n_inputs = step.n_inputs
+        self.n_outputs = step.n_outputs
+        self.x_bar: tuple[float, ...] = initial_x_bar or (0.0,) * step.n_states
+        self._dob_flag = FLAG_DOB_ON if dob_enabled else 0
+        self._policy = missing_policy
+        self._max_missing = max_missing_periods
+        self._zero_u = (0.0,) * step.n_inputs
+        self._C_rows = C_rows
+        self.consecutive_missing = 0
+        self.last_feedback: Feedback | None = None
+        self.stats = CycleStats()
+
+    def on_feedback(self, k: int, time_ns: int, fb: Feedback, lateness_ns: int, overrun: bool) -> None:
+        """Sample ``k`` with its feedback: step, quantize, send, log."""
+        self.consecutive_missing = 0
+        self.last_feedback = fb
+        x_ref = self._ref_at(k)
+        t0 = self._clock_ns()
+        out = self._update(self.x_bar, fb.position, x_ref)
+        codes, applied, saturated = self._link.quantize(out.u_cmd)
+        x_bar = self.x_bar
+        self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
+        compute_ns = self._clock_ns() - t0
+        tx_ns = self._link.send_command(codes, fb.seq)
+        flags = self._dob_flag | (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if overrun else 0)
+        self._log.sample(
+            time_ns, fb.rx_time_ns, tx_ns, lateness_ns, fb.counts, fb.position, x_ref, out.x_hat, x_bar,
+            out.u_fb, out.u_dist, out.u_cmd, applied, k, compute_ns, codes, fb.seq, flags,
+        )  # fmt: skip
+        self._account(applied, saturated, overrun, compute_ns)
+
+    def on_missing(self, k: int, time_ns: int, answers_seq: int, lateness_ns: int, overrun: bool) -> None:
+        """Sample ``k`` without (valid) feedback: substitute per the policy, send, log."""
+        self.consecutive_missing += 1
+        self.stats.missing += 1
+        self.stats.max_consecutive_missing = max(self.stats.max_consecutive_missing, self.consecutive_missing)
+        x_ref = self._ref_at(k)
+        last = self.last_feedback
+        x_bar = self.x_bar
+        t0 = self._clock_ns()
+        if self._policy == "hold" and last is not None:
+            y = last.position
+        else:  # extrapolate, and the estimator side of zero: the model's own output, innovation 0
+            y = tuple(sum(c * x for c, x in zip(row, x_bar, strict=True)) for row in self._C_rows)
+        out = self._update(x_bar, y, x_ref)
+        zero_out = self._policy == "zero" or self.consecutive_missing > self._max_missing or last is None
+        u_cmd = self._zero_u if zero_out else out.u_cmd
+        codes, applied, saturated = self._link.quantize(u_cmd)
+        # applied - u_dist stays the model's estimate of the plant's net input, also for zero current
+        self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
+        compute_ns = self._clock_ns() - t0
+        tx_ns = self._link.send_command(codes, answers_seq)
+        counts = last.counts if last is not None else (0,) * self.n_outputs
+        flags = self._dob_flag | FLAG_MISSING | (FLAG_SATURATED if saturated else 0)
+        flags |= FLAG_OVERRUN if overrun else 0
+        self._log.sample(
+            time_ns, 0, tx_ns, lateness_ns, counts, y, x_ref, out.x_hat, x_bar,
+            out.u_fb, out.u_dist, u_cmd, applied, k, compute_ns, codes, answers_seq % 256, flags,
+        )  # fmt: skip
+        self._account(applied, saturated, overrun, compute_ns)
+
+    def _account(self, applied: tuple[float, ...], saturated: bool, overrun: bool, compute_ns: int) -> None:
+        s = self.stats
+        s.samples += 1
+        if saturated:
+            s.saturated += 1
+        if overrun:
+            s.overruns += 1
+        a = max(abs(u) for u in applied)
+        if a > s.max_abs_applied_A:
+            s.max_abs_applied_A = a
+        if compute_ns > s.compute_ns_max:
+            s.compute_ns_max = compute_ns

@@ -1,0 +1,315 @@
+"""One run, from a config to a finalised log: build, enable, loop, and always stop safely.
+
+Whatever ends the run (completion, a drive fault, a host timeout, an exception, SIGINT or
+SIGTERM), the ``finally`` path commands zero current, disables the drive and finalises the log
+with a summary naming the exit reason.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import platform
+import signal
+import sys
+import time
+import types
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from dob_hil import __version__
+from dob_hil.config import Config
+from dob_hil.control.reference import make_reference
+from dob_hil.control.step import Gains, compile_step
+from dob_hil.design import Design, build_design
+from dob_hil.errors import DobHilError, DriveFault
+from dob_hil.link.base import LinkEvent
+from dob_hil.link.bus import open_bus
+from dob_hil.link.busload import check_bus_load
+from dob_hil.link.native import NativeDriveLink
+from dob_hil.log import LogLayout, LogWriter
+from dob_hil.loop.cycle import ControlCycle, CycleStats
+from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
+from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
+
+_channel_counter = itertools.count()
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    interface: str | None = None
+    channel: str | None = None
+    bitrate: int | None = None
+    dob_enabled: bool | None = None  # None: the config's run.dob_enabled
+    duration_s: float | None = None  # None: the config's run.duration_s
+    log_path: Path | None = None
+    realtime: bool = False  # real time even with the embedded drive
+    rt: RtSettings = field(default_factory=RtSettings)
+    progress: Callable[[int, int], None] | None = None  # (done, total)
+    enable_timeout_s: float = 2.0
+
+
+@dataclass
+class RunSummary:
+    name: str
+    log_path: str
+    mode: str
+    dob_enabled: bool
+    exit_reason: str
+    samples: int
+    planned_samples: int
+    duration_s: float
+    wall_time_s: float
+    samples_per_s: float
+    saturated_samples: int
+    missing_samples: int
+    skipped_samples: int
+    overruns: int
+    max_abs_current_A: float
+    current_limit_A: float
+    compute_ns_max: int
+    log_dropped_records: int
+    events: dict[str, int]
+    rt_applied: list[str]
+    rt_refused: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class _StopFlag:
+    """Set by SIGINT/SIGTERM; the loop checks it every sample. A second SIGINT raises at once."""
+
+    def __init__(self) -> None:
+        self.requested: str | None = None
+
+    def handler(self, signum: int, frame: types.FrameType | None) -> None:
+        name = signal.Signals(signum).name
+        if self.requested is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.requested = name
+
+
+@contextmanager
+def _signals(flag: _StopFlag) -> Iterator[None]:
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.signal(s, flag.handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _versions() -> dict[str, str]:
+    import mcap
+
+    return {
+        "dob_hil": __version__,
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "python-can": can.__version__,
+        "mcap": getattr(mcap, "__version__", "unknown"),
+        "platform": platform.platform(),
+    }
+
+
+def default_log_path(config: Config, dob_enabled: bool) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
+    return config.run.log_dir / f"{config.name}-{'dob' if dob_enabled else 'nodob'}-{stamp}.mcap"
+
+
+def run_session(config: Config, options: RunOptions) -> RunSummary:
+    """Run one session; raises DobHilError subclasses for bad input, after stopping safely."""
+    dob_enabled = config.run.dob_enabled if options.dob_enabled is None else options.dob_enabled
+    design = build_design(config, dob_enabled=dob_enabled)
+    check_bus_load(config.drive, config.plant.period_ns)
+    duration_s = options.duration_s if options.duration_s is not None else config.run.duration_s
+    if not duration_s > 0:
+        raise DobHilError(f"--duration: must be > 0 s, got {duration_s}")
+    period_ns = config.plant.period_ns
+    n_samples = max(1, round(duration_s * 1e9 / period_ns))
+    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
+    step = compile_step(gains, dob_enabled)
+    reference = make_reference(config.reference, step.n_states, config.plant.period_s)
+    external_bus = options.interface is not None or options.channel is not None
+    mode = "realtime" if (external_bus or options.realtime) else "lockstep"
+    log_path = options.log_path or default_log_path(config, dob_enabled)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    layout = LogLayout(
+        n_states=step.n_states,
+        n_inputs=step.n_inputs,
+        n_outputs=step.n_outputs,
+        n_plant_states=config.plant.n_states,
+    )
+    run_meta = {
+        "mode": mode,
+        "interface": str(options.interface or ("virtual" if not external_bus else "default")),
+        "channel": str(options.channel or ""),
+        "bitrate_bps": str(options.bitrate or config.drive.bitrate_bps),
+        "period_ns": str(period_ns),
+        "planned_samples": str(n_samples),
+        "dob_enabled": str(dob_enabled).lower(),
+        "scenario": config.name,
+        "started_utc": datetime.now(timezone.utc).isoformat(),
+        "current_limit_A": repr(config.drive.current_limit_A),
+        "dac_lsb_A": repr(config.drive.dac_lsb_A),
+        "encoder_counts_per_unit": repr(config.drive.encoder_counts_per_unit),
+        "missing_feedback_policy": config.run.missing_feedback_policy,
+    }
+    design_json = design.to_json()
+    with LogWriter(
+        log_path,
+        layout,
+        metadata={"run": run_meta, "versions": _versions()},
+        attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
+    ) as log:
+        return _run_with_log(config, options, design, step, reference, log, log_path, mode, n_samples,
+                             dob_enabled, external_bus)  # fmt: skip
+
+
+def _run_with_log(
+    config: Config,
+    options: RunOptions,
+    design: Design,
+    step: Any,
+    reference: Any,
+    log: LogWriter,
+    log_path: Path,
+    mode: str,
+    n_samples: int,
+    dob_enabled: bool,
+    external_bus: bool,
+) -> RunSummary:
+    from firmware_sim import SimulatedDrive
+
+    event_counts: dict[str, int] = {}
+
+    def on_event(ev: LinkEvent) -> None:
+        event_counts[ev.kind.value] = event_counts.get(ev.kind.value, 0) + 1
+        level = "error" if ev.kind.value in ("drive_fault", "send_failed") else "warning"
+        if ev.kind.value == "drive_state":
+            level = "info"
+        log.event(ev.time_ns, level, ev.kind.value, ev.message)
+
+    drive_bus: can.BusABC | None = None
+    drive: Any = None
+    if external_bus:
+        host_bus = open_bus(options.interface, options.channel, options.bitrate)
+    else:
+        channel = f"dob-hil-{os.getpid()}-{next(_channel_counter)}"
+        host_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        drive_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        drive = SimulatedDrive(
+            drive_bus,
+            config,
+            clock="realtime" if options.realtime else "lockstep",
+            truth_sink=lambda t: log.truth(
+                t.time_ns, t.state, (t.disturbance_A,), (t.applied_current_A,), t.period_index, int(t.drive_state)
+            ),
+        )
+    link = NativeDriveLink(host_bus, config.drive, frame_hook=log.frame, event_hook=on_event)
+    cycle = ControlCycle(
+        step,
+        reference,
+        link,
+        log,
+        dob_enabled=dob_enabled,
+        missing_policy=config.run.missing_feedback_policy,
+        max_missing_periods=config.run.max_missing_periods,
+        C_rows=tuple(tuple(float(c) for c in row) for row in design.C),
+    )
+    limits = LoopLimits(n_samples, config.plant.period_ns, config.drive.feedback_timeout_periods)
+    flag = _StopFlag()
+    rt = options.rt
+    rt_report = apply_rt_settings(rt) if mode == "realtime" else None
+    if rt_report is not None:
+        for msg in rt_report.refused:
+            log.event(time.monotonic_ns(), "warning", "rt_setting_refused", msg)
+            print(f"dob-hil run: warning: {msg}", file=sys.stderr)
+    progress = None
+    if options.progress is not None:
+        report = options.progress
+
+        def progress(k: int) -> None:
+            report(k, n_samples)
+
+    exit_reason = "error"
+    t_start = time.perf_counter()
+    try:
+        with _signals(flag):
+            log.event(time.monotonic_ns(), "info", "run_start", f"{mode} run of {n_samples} samples")
+            if mode == "lockstep":
+                link.request_enable()
+                drive.service()
+                link.wait_enabled(0)
+                exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
+            else:
+                if drive is not None:
+                    drive.start()
+                link.enable(int(options.enable_timeout_s * 1e9))
+                exit_reason = run_realtime(cycle, link, log, limits, flag, progress=progress)
+    except DriveFault as exc:
+        exit_reason = f"drive fault: {exc}"
+        log.event(time.monotonic_ns(), "error", "run_aborted", str(exc))
+        raise
+    except KeyboardInterrupt:
+        exit_reason = "SIGINT"
+        raise
+    except BaseException as exc:
+        exit_reason = f"exception: {type(exc).__name__}: {exc}"
+        log.event(time.monotonic_ns(), "error", "run_aborted", exit_reason)
+        raise
+    finally:
+        wall_s = time.perf_counter() - t_start
+        link.safe_stop()
+        if drive is not None:
+            if mode == "lockstep":
+                drive.service()
+            else:
+                drive.stop()
+        if rt_report is not None:
+            restore_rt_settings(rt)
+        stats: CycleStats = cycle.stats
+        summary = RunSummary(
+            name=config.name,
+            log_path=str(log_path),
+            mode=mode,
+            dob_enabled=dob_enabled,
+            exit_reason=exit_reason,
+            samples=stats.samples,
+            planned_samples=n_samples,
+            duration_s=stats.samples * config.plant.period_ns * 1e-9,
+            wall_time_s=wall_s,
+            samples_per_s=stats.samples / wall_s if wall_s > 0 else 0.0,
+            saturated_samples=stats.saturated,
+            missing_samples=stats.missing,
+            skipped_samples=stats.skipped,
+            overruns=stats.overruns,
+            max_abs_current_A=stats.max_abs_applied_A,
+            current_limit_A=config.drive.current_limit_A,
+            compute_ns_max=stats.compute_ns_max,
+            log_dropped_records=0,
+            events=event_counts,
+            rt_applied=rt_report.applied if rt_report else [],
+            rt_refused=rt_report.refused if rt_report else [],
+        )
+        log.event(time.monotonic_ns(), "info", "run_end", exit_reason)
+        link.close()
+        if drive_bus is not None:
+            drive_bus.shutdown()
+        log.close({k: json.dumps(v) if not isinstance(v, str) else v for k, v in summary.to_dict().items()})
+        summary.log_dropped_records = log.stats.dropped_records
+    return summary
