@@ -27,6 +27,7 @@ class LinkEventKind(enum.Enum):
     STALE_FEEDBACK = "stale_feedback"  # duplicated or out-of-order feedback, discarded
     SEND_FAILED = "send_failed"  # bus.send raised
     ENCODER_JUMP = "encoder_jump"  # a counts step larger than the plausibility bound
+    INVALID_COMMAND = "invalid_command"  # a non-finite current asked of quantize(): 0 A sent instead
 
 
 @dataclass(frozen=True, slots=True)

@@ -154,6 +154,17 @@ def _check(signal: str, value: int, low: int, high: int) -> None:
         raise ProtocolError(f"{signal}: {value} is outside {low}..{high}")
 
 
+def _check_code(signal: str, value: int, codes: type[enum.IntEnum]) -> int:
+    """``value`` as a plain int if it is one of ``codes``; else :class:`ProtocolError` naming the set."""
+    valid = ", ".join(f"{member.value} ({member.name})" for member in codes)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ProtocolError(f"{signal}: expected an integer code, got {value!r}; valid: {valid}")
+    try:
+        return int(codes(value))
+    except ValueError:
+        raise ProtocolError(f"{signal}: {value} is not a valid code; valid: {valid}") from None
+
+
 def _check_len(kind: FrameKind, data: bytes | bytearray | memoryview) -> None:
     if len(data) != DLC[kind]:
         raise ProtocolError(
@@ -175,7 +186,7 @@ def saturate_current_counts(current_counts: int, limit_counts: int) -> int:
 def encode_feedback(frame: FeedbackFrame) -> bytes:
     _check("FEEDBACK.counts", frame.counts, COUNTS_MIN, COUNTS_MAX)
     _check("FEEDBACK.seq", frame.seq, 0, SEQ_MODULO - 1)
-    _check("FEEDBACK.status", int(frame.status), 0, 0x0F)
+    _check("FEEDBACK.status", frame.status, 0, 0x0F)
     return _FEEDBACK.pack(frame.counts, frame.seq, int(frame.status))
 
 
@@ -202,7 +213,7 @@ def decode_command(data: bytes | bytearray | memoryview) -> CommandFrame:
 
 # --- CONTROL, FAULT, HEARTBEAT ---------------------------------------------------------------------
 def encode_control(frame: ControlFrame) -> bytes:
-    return bytes((ControlRequest(frame.request),))
+    return bytes((_check_code("CONTROL.request", frame.request, ControlRequest),))
 
 
 def decode_control(data: bytes | bytearray | memoryview) -> ControlFrame:
@@ -214,8 +225,9 @@ def decode_control(data: bytes | bytearray | memoryview) -> ControlFrame:
 
 
 def encode_fault(frame: FaultFrame) -> bytes:
+    code = _check_code("FAULT.code", frame.code, FaultCode)
     _check("FAULT.info", frame.info, 0, 255)
-    return _TWO_U8.pack(FaultCode(frame.code), frame.info)
+    return _TWO_U8.pack(code, frame.info)
 
 
 def decode_fault(data: bytes | bytearray | memoryview) -> FaultFrame:
@@ -228,7 +240,7 @@ def decode_fault(data: bytes | bytearray | memoryview) -> FaultFrame:
 
 
 def encode_heartbeat(frame: HeartbeatFrame) -> bytes:
-    return bytes((DriveState(frame.state),))
+    return bytes((_check_code("HEARTBEAT.state", frame.state, DriveState),))
 
 
 def decode_heartbeat(data: bytes | bytearray | memoryview) -> HeartbeatFrame:

@@ -220,7 +220,7 @@ def _run_with_log(
                 t.time_ns, t.state, (t.disturbance_A,), (t.applied_current_A,), t.period_index, int(t.drive_state)
             ),
         )
-    link = NativeDriveLink(host_bus, config.drive, frame_hook=log.frame, event_hook=on_event)
+    link = NativeDriveLink(host_bus, config.drive, frame_hook=log.frame, event_hook=on_event, owns_bus=True)
     cycle = ControlCycle(
         step,
         reference,

@@ -1,0 +1,675 @@
+"""The native drive profile: :class:`~dob_hil.link.base.DriveLink` over a python-can bus.
+
+One drive (``drive.node_id``), one axis. The frames are those of :mod:`dob_hil.link.protocol`;
+this module adds the transport: receiving and validating, unwrapping the encoder counter,
+quantizing and limiting the current, sending, and the enable/stop sequences.
+
+Receiving. :meth:`NativeDriveLink.receive_feedback` blocks in ``bus.recv`` (it never spins) until
+a valid FEEDBACK of our node arrives. Everything else that arrives on the way is handed to
+``frame_hook(msg, True)`` and then reported to ``event_hook`` and skipped: error frames
+(ERROR_FRAME), remote frames, 29-bit ids, other nodes' frames and ids of no native frame
+(FOREIGN_FRAME), our ids with a payload that does not decode (MALFORMED_FRAME), FEEDBACK whose
+sequence number is a duplicate or up to ``stale_window`` behind the last accepted one
+(STALE_FEEDBACK). FAULT frames give DRIVE_FAULT, heartbeats (and feedback status bits) that change
+the drive state give DRIVE_STATE. Our own COMMAND and CONTROL ids coming back (``udp_multicast``
+delivers a process its own frames even with ``receive_own_messages=False``) are skipped silently
+and only counted in :attr:`NativeDriveLink.stats`; they never reach the controller.
+
+Time. ``Feedback.rx_time_ns`` and every ``LinkEvent.time_ns`` is ``clock_ns()`` read right
+after ``bus.recv`` returned the frame (host receipt time, ``time.monotonic_ns`` by default; a
+lockstep runner passes its simulated clock). The bus's own timestamp stays in ``msg.timestamp``
+for the log. Timeouts (``timeout_ns`` arguments) are wall-clock, measured with
+``time.monotonic_ns``, because ``bus.recv`` blocks in wall-clock time. A timeout of 0 still
+reads every frame already queued, so a lockstep caller that services the simulated drive before
+receiving gets its frames.
+
+Quantizing. ``code = clamp(round_half_away(u / dac_lsb_A), -L, +L)`` with
+``L = floor(current_limit_A / dac_lsb_A)``, so the applied current ``code * dac_lsb_A`` never
+exceeds the limit (0.7 A and 1/2048 A give L = 1433, 0.69970703125 A). Rounding is half away from
+zero (``lround`` of C firmware), not Python's half-to-even ``round``: it is odd-symmetric and has
+no dependence on the parity of the code. A non-finite current (NaN, inf) gives code 0 (0 A),
+``saturated=True`` and an event: the drive is never told anything but a finite, limited current.
+
+Enabling. :meth:`~NativeDriveLink.enable` = :meth:`~NativeDriveLink.request_enable` +
+:meth:`~NativeDriveLink.wait_enabled`. In lockstep (the caller services the simulated drive
+between send and receive) use the split form: ``request_enable()``, then service the drive and
+call :meth:`~NativeDriveLink.poll_enabled` (non-blocking) until it returns True. An enable
+attempt succeeds when a HEARTBEAT or FEEDBACK received after the request shows the drive enabled;
+a FAULT frame during the attempt raises :class:`~dob_hil.errors.DriveFault`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Final
+
+import can
+
+from dob_hil.config import DriveConfig
+from dob_hil.errors import ConfigError, DriveFault, ProtocolError
+from dob_hil.link import protocol
+from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
+from dob_hil.link.protocol import (
+    DLC,
+    ControlRequest,
+    DriveState,
+    FaultCode,
+    FaultFrame,
+    FrameKind,
+    Status,
+    frame_id,
+    saturate_current_counts,
+)
+from dob_hil.link.unwrap import CountUnwrapper
+
+_log = logging.getLogger(__name__)
+
+DEFAULT_STALE_WINDOW: Final = 32  # feedback up to this many sequence numbers behind is stale
+MAX_READS_AFTER_DEADLINE: Final = 1024  # bounds the drain of already-queued frames after a timeout
+N_AXES: Final = 1
+
+# A non-finite current is reported with this kind once base.LinkEventKind has INVALID_COMMAND.
+_INVALID_COMMAND_KIND: Final = LinkEventKind.__members__.get("INVALID_COMMAND", LinkEventKind.SEND_FAILED)
+
+_FEEDBACK_STRUCT: Final = struct.Struct("<iBB")  # the layout of protocol.FEEDBACK
+_COMMAND_STRUCT: Final = struct.Struct("<hB")  # the layout of protocol.COMMAND
+_FEEDBACK_DLC: Final = DLC[FrameKind.FEEDBACK]
+_STATUS_RESERVED: Final = protocol.STATUS_RESERVED_MASK
+_ENABLED: Final = int(Status.ENABLED)
+_FAULT: Final = int(Status.FAULT)
+_SATURATED: Final = int(Status.SATURATED)
+_INF: Final = math.inf
+
+_FAULT_INFO: Final = {
+    FaultCode.WATCHDOG: "periods without a valid command",
+    FaultCode.BAD_FRAME: "low byte of the offending id",
+}
+
+
+@dataclass(slots=True)
+class LinkStats:
+    """Counters of everything the link saw and did (cheap to keep; read them for the run report)."""
+
+    rx_frames: int = 0
+    feedback: int = 0  # valid feedback delivered
+    missed_feedback: int = 0  # sequence numbers skipped between accepted feedback
+    stale_feedback: int = 0
+    malformed_frames: int = 0
+    foreign_frames: int = 0
+    error_frames: int = 0
+    own_echoes: int = 0  # our own COMMAND/CONTROL frames received back (udp_multicast)
+    drive_faults: int = 0
+    encoder_jumps: int = 0
+    tx_frames: int = 0
+    send_failures: int = 0
+    clamped_commands: int = 0  # codes above the limit given to send_command, clamped
+    nonfinite_currents: int = 0  # NaN/inf given to quantize, sent as 0 A
+
+
+def describe_fault(fault: FaultFrame) -> str:
+    """``WATCHDOG (info 10: periods without a valid command)``."""
+    meaning = _FAULT_INFO.get(fault.code)
+    return f"{fault.code.name} (info {fault.info}{': ' + meaning if meaning else ''})"
+
+
+class NativeDriveLink:
+    """One drive of the native protocol on a python-can bus. See the module docstring."""
+
+    n_axes: Final = N_AXES
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        drive: DriveConfig,
+        *,
+        frame_hook: FrameHook | None = None,
+        event_hook: EventHook | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        owns_bus: bool = False,
+        stale_window: int = DEFAULT_STALE_WINDOW,
+        max_counts_step: int | None = None,
+        send_timeout_ns: int | None = None,
+    ) -> None:
+        """
+        ``owns_bus``: :meth:`close` shuts the bus down. ``stale_window``: feedback whose sequence
+        number is 0..``stale_window`` behind the last accepted one is discarded as stale; anything
+        further ahead is accepted (a gap counts in ``stats.missed_feedback``). ``max_counts_step``:
+        an unwrapped step larger than this raises an ENCODER_JUMP event (the feedback is still
+        delivered); default a quarter of the counter range, ``2**(encoder_bits - 2)``.
+        ``send_timeout_ns``: passed to ``bus.send`` (None: the interface's default).
+        """
+        if drive.profile != "native":
+            raise ConfigError(
+                "drive.profile", f"NativeDriveLink drives the native profile, got {drive.profile!r}"
+            )
+        if not drive.dac_lsb_A > 0.0 or not math.isfinite(drive.dac_lsb_A):
+            raise ConfigError("drive.dac_lsb_A", f"must be a finite number > 0, got {drive.dac_lsb_A}")
+        if not 0.0 < drive.current_limit_A < math.inf:
+            raise ConfigError(
+                "drive.current_limit_A", f"must be a finite number > 0, got {drive.current_limit_A}"
+            )
+        # exact floor(limit / lsb): the float quotient can round up (0.7 / 0.01 == 70.0), and then
+        # limit_code * lsb would exceed the limit
+        limit_code = math.floor(Fraction(drive.current_limit_A) / Fraction(drive.dac_lsb_A))
+        if not 1 <= limit_code <= protocol.CURRENT_COUNTS_MAX:
+            raise ConfigError(
+                "drive.current_limit_A",
+                f"{drive.current_limit_A} A is {limit_code} DAC LSBs of {drive.dac_lsb_A} A; "
+                f"must be 1..{protocol.CURRENT_COUNTS_MAX}",
+            )
+        if not drive.encoder_counts_per_unit > 0.0:
+            raise ConfigError(
+                "drive.encoder_counts_per_unit", f"must be > 0, got {drive.encoder_counts_per_unit}"
+            )
+        if not 1 <= stale_window <= 127:
+            raise ConfigError("stale_window", f"must be 1..127, got {stale_window}")
+        node = drive.node_id
+        try:
+            self._feedback_id = frame_id(FrameKind.FEEDBACK, node)
+        except ProtocolError as exc:
+            raise ConfigError("drive.node_id", str(exc)) from None
+        self._fault_id = frame_id(FrameKind.FAULT, node)
+        self._heartbeat_id = frame_id(FrameKind.HEARTBEAT, node)
+        self._command_id = frame_id(FrameKind.COMMAND, node)
+        self._control_id = frame_id(FrameKind.CONTROL, node)
+        self._own_tx_ids = frozenset((self._command_id, self._control_id))
+        self._handlers: dict[int, Callable[[can.Message, int], Feedback | None]] = {
+            self._feedback_id: self._on_feedback,
+            self._fault_id: self._on_fault,
+            self._heartbeat_id: self._on_heartbeat,
+        }
+
+        self._bus = bus
+        self._drive = drive
+        self._node = node
+        self._frame_hook = frame_hook
+        self._event_hook = event_hook
+        self._clock_ns = clock_ns
+        self._owns_bus = owns_bus
+        self._send_timeout_s = None if send_timeout_ns is None else send_timeout_ns * 1e-9
+
+        self._lsb_A = drive.dac_lsb_A
+        self._limit_code = limit_code
+        self._round_limit = limit_code + 0.5  # |u / lsb| at or above this rounds beyond the limit
+        self._counts_per_unit = drive.encoder_counts_per_unit
+        self._unwrapper = CountUnwrapper(drive.encoder_bits)
+        self._max_counts_step = 2 ** (drive.encoder_bits - 2) if max_counts_step is None else max_counts_step
+        self._stale_from = 256 - stale_window  # (seq - last) mod 256 >= this: stale
+
+        self._last_seq: int | None = None
+        self._state: DriveState | None = None
+        self._last_fault: FaultFrame | None = None
+        self._enable_mask = 0  # 0x80 while the host wants the drive enabled (COMMAND bit 7)
+        self._enable_attempt_faults = -1  # stats.drive_faults when the enable attempt began; -1: none
+        self._enable_seen = False
+        self._closed = False
+        self.stats = LinkStats()
+
+    # --- properties ------------------------------------------------------------------------------
+    @property
+    def current_limit_A(self) -> float:
+        """The configured current limit; the largest current actually sent is :attr:`max_current_A`."""
+        return self._drive.current_limit_A
+
+    @property
+    def max_current_A(self) -> float:
+        return self._limit_code * self._lsb_A
+
+    @property
+    def limit_code(self) -> int:
+        """floor(current_limit_A / dac_lsb_A): the largest |DAC code| ever sent."""
+        return self._limit_code
+
+    @property
+    def dac_lsb_A(self) -> float:
+        return self._lsb_A
+
+    @property
+    def node_id(self) -> int:
+        return self._node
+
+    @property
+    def drive_state(self) -> DriveState | None:
+        """The last state the drive reported (heartbeat, feedback status or a FAULT frame)."""
+        return self._state
+
+    @property
+    def faulted(self) -> bool:
+        return self._state is DriveState.FAULT
+
+    @property
+    def last_fault(self) -> FaultFrame | None:
+        """The last FAULT frame received (kept after the fault is cleared)."""
+        return self._last_fault
+
+    @property
+    def last_seq(self) -> int | None:
+        """Sequence number of the last accepted feedback."""
+        return self._last_seq
+
+    @property
+    def enable_requested(self) -> bool:
+        return self._enable_mask != 0
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # --- receiving -------------------------------------------------------------------------------
+    def receive_feedback(self, timeout_ns: int) -> Feedback | None:
+        """The next valid feedback of our drive, or None once ``timeout_ns`` (wall clock) has passed."""
+        self._check_open()
+        recv = self._bus.recv
+        clock_ns = self._clock_ns
+        hook = self._frame_hook
+        feedback_id = self._feedback_id
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        timeout_s = timeout_ns * 1e-9 if timeout_ns > 0 else 0.0
+        reads_after_deadline = 0
+        while True:
+            msg = self._recv(recv, timeout_s)
+            if msg is None:
+                return None
+            now_ns = clock_ns()
+            if hook is not None:
+                hook(msg, True)
+            self.stats.rx_frames += 1
+            if (
+                msg.arbitration_id == feedback_id
+                and not msg.is_extended_id
+                and not msg.is_error_frame
+                and not msg.is_remote_frame
+                and not msg.is_fd
+            ):
+                feedback = self._on_feedback(msg, now_ns)
+            else:
+                feedback = self._dispatch(msg, now_ns)
+            if feedback is not None:
+                return feedback
+            remaining_ns = deadline_ns - time.monotonic_ns()
+            if remaining_ns > 0:
+                timeout_s = remaining_ns * 1e-9
+            else:
+                timeout_s = 0.0
+                reads_after_deadline += 1
+                if reads_after_deadline > MAX_READS_AFTER_DEADLINE:
+                    return None
+
+    def _recv(
+        self, recv: Callable[[float | None], can.Message | None], timeout_s: float
+    ) -> can.Message | None:
+        try:
+            return recv(timeout_s)
+        except can.CanError as exc:
+            raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
+
+    def _dispatch(self, msg: can.Message, now_ns: int) -> Feedback | None:
+        """Any received frame: validate, update the link state, report; a Feedback if it is one."""
+        if msg.is_error_frame:
+            self.stats.error_frames += 1
+            self._event(now_ns, LinkEventKind.ERROR_FRAME, f"CAN error frame {_describe(msg)}")
+            return None
+        if msg.is_extended_id or msg.is_remote_frame:
+            self.stats.foreign_frames += 1
+            what = "29-bit id" if msg.is_extended_id else "remote frame"
+            self._event(now_ns, LinkEventKind.FOREIGN_FRAME, f"{what} {_describe(msg)} skipped")
+            return None
+        aid = msg.arbitration_id
+        handler = self._handlers.get(aid)
+        if handler is None:
+            if aid in self._own_tx_ids:
+                self.stats.own_echoes += 1
+                return None
+            self.stats.foreign_frames += 1
+            self._event(
+                now_ns, LinkEventKind.FOREIGN_FRAME, f"{_describe(msg)} is no frame of node {self._node}"
+            )
+            return None
+        if msg.is_fd:
+            self._malformed(now_ns, msg, "a CAN FD frame; the native protocol is classic CAN")
+            return None
+        return handler(msg, now_ns)
+
+    def _on_feedback(self, msg: can.Message, now_ns: int) -> Feedback | None:
+        data = msg.data
+        if len(data) != _FEEDBACK_DLC or data[5] & _STATUS_RESERVED:
+            try:  # the codec names what is wrong
+                protocol.decode_feedback(data)
+                problem = "does not decode"
+            except ProtocolError as exc:
+                problem = str(exc)
+            self._malformed(now_ns, msg, problem)
+            return None
+        raw_counts, seq, status = _FEEDBACK_STRUCT.unpack(data)
+        last_seq = self._last_seq
+        if last_seq is not None:
+            ahead = (seq - last_seq) & 0xFF
+            if ahead == 0 or ahead >= self._stale_from:
+                self.stats.stale_feedback += 1
+                self._event(
+                    now_ns,
+                    LinkEventKind.STALE_FEEDBACK,
+                    f"node {self._node}: feedback seq {seq} after {last_seq} "
+                    f"({'duplicate' if ahead == 0 else f'{256 - ahead} behind'}), discarded",
+                )
+                return None
+            if ahead > 1:
+                self.stats.missed_feedback += ahead - 1
+        self._last_seq = seq
+        unwrapper = self._unwrapper
+        step = unwrapper.step(raw_counts)
+        if step > self._max_counts_step or step < -self._max_counts_step:
+            self.stats.encoder_jumps += 1
+            self._event(
+                now_ns,
+                LinkEventKind.ENCODER_JUMP,
+                f"node {self._node}: encoder step {step} counts at seq {seq} "
+                f"exceeds the plausibility bound {self._max_counts_step}",
+            )
+        counts = unwrapper.update(raw_counts)
+        enabled = bool(status & _ENABLED)
+        fault = bool(status & _FAULT)
+        state = DriveState.FAULT if fault else DriveState.ENABLED if enabled else DriveState.DISABLED
+        if state is not self._state:
+            self._change_state(now_ns, state, "feedback status")
+        elif self._enable_attempt_faults >= 0:
+            self._enable_seen = state is DriveState.ENABLED
+        self.stats.feedback += 1
+        return Feedback(
+            now_ns,
+            seq,
+            (raw_counts,),
+            (counts,),
+            (counts / self._counts_per_unit,),
+            enabled,
+            fault,
+            bool(status & _SATURATED),
+        )
+
+    def _on_fault(self, msg: can.Message, now_ns: int) -> None:
+        try:
+            fault = protocol.decode_fault(msg.data)
+        except ProtocolError as exc:
+            self._malformed(now_ns, msg, str(exc))
+            return None
+        self._last_fault = fault
+        self._state = DriveState.FAULT
+        self._enable_seen = False
+        self.stats.drive_faults += 1
+        self._event(
+            now_ns, LinkEventKind.DRIVE_FAULT, f"node {self._node}: drive fault {describe_fault(fault)}"
+        )
+        return None
+
+    def _on_heartbeat(self, msg: can.Message, now_ns: int) -> None:
+        try:
+            state = protocol.decode_heartbeat(msg.data).state
+        except ProtocolError as exc:
+            self._malformed(now_ns, msg, str(exc))
+            return None
+        if state is not self._state:
+            self._change_state(now_ns, state, "heartbeat")
+        elif self._enable_attempt_faults >= 0:
+            self._enable_seen = state is DriveState.ENABLED
+        return None
+
+    def _change_state(self, now_ns: int, state: DriveState, source: str) -> None:
+        old = "unknown" if self._state is None else self._state.name
+        self._state = state
+        if self._enable_attempt_faults >= 0:
+            self._enable_seen = state is DriveState.ENABLED
+        self._event(now_ns, LinkEventKind.DRIVE_STATE, f"node {self._node}: {old} -> {state.name} ({source})")
+
+    def _malformed(self, now_ns: int, msg: can.Message, problem: str) -> None:
+        self.stats.malformed_frames += 1
+        self._event(now_ns, LinkEventKind.MALFORMED_FRAME, f"{_describe(msg)} skipped: {problem}")
+
+    def _event(self, time_ns: int, kind: LinkEventKind, message: str) -> None:
+        if self._event_hook is not None:
+            self._event_hook(LinkEvent(time_ns, kind, message))
+
+    # --- quantizing and sending --------------------------------------------------------------------
+    def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
+        """((code,), (code * dac_lsb_A,), saturated); see the module docstring for the rule."""
+        if len(current_A) != N_AXES:
+            raise ProtocolError(f"current_A: the native profile drives 1 axis, got {len(current_A)} currents")
+        u = current_A[0]
+        if not -_INF < u < _INF:
+            self.stats.nonfinite_currents += 1
+            self._event(
+                self._clock_ns(),
+                _INVALID_COMMAND_KIND,
+                f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
+            )
+            return (0,), (0.0,), True
+        x = u / self._lsb_A
+        if x >= self._round_limit:
+            code = self._limit_code
+            return (code,), (code * self._lsb_A,), True
+        if x <= -self._round_limit:
+            code = -self._limit_code
+            return (code,), (code * self._lsb_A,), True
+        code = round_half_away(x)
+        return (code,), (code * self._lsb_A,), False
+
+    def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
+        """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns().
+
+        The code is clamped to +-:attr:`limit_code` as the last step before packing (quantize
+        already does that; a clamp here is counted in ``stats.clamped_commands``). The enable bit
+        is set between :meth:`request_enable` and :meth:`safe_stop`/:meth:`disable`.
+        Raises :class:`~dob_hil.errors.DriveFault` when ``bus.send`` fails.
+        """
+        if len(codes) != N_AXES:
+            raise ProtocolError(
+                f"COMMAND.current_counts: the native profile drives 1 axis, got {len(codes)} codes"
+            )
+        code = codes[0]
+        limited = saturate_current_counts(code, self._limit_code)
+        if limited != code:
+            self.stats.clamped_commands += 1
+        try:
+            payload = _COMMAND_STRUCT.pack(limited, (answers_seq & 0x7F) | self._enable_mask)
+        except (struct.error, TypeError):
+            raise ProtocolError(
+                f"COMMAND: expected integer current_counts and answers_seq, got {code!r} and {answers_seq!r}"
+            ) from None
+        self._send(self._command_id, payload, "COMMAND")
+        return self._clock_ns()
+
+    def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
+        self._check_open()
+        msg = can.Message(
+            timestamp=time.time(), arbitration_id=arbitration_id, is_extended_id=False, data=payload
+        )
+        try:
+            self._bus.send(msg, self._send_timeout_s)
+        except can.CanError as exc:
+            self.stats.send_failures += 1
+            text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
+            self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
+            raise DriveFault(text) from exc
+        self.stats.tx_frames += 1
+        if self._frame_hook is not None:
+            self._frame_hook(msg, False)
+
+    def _send_control(self, request: ControlRequest) -> None:
+        self._send(
+            self._control_id,
+            protocol.encode_control(protocol.ControlFrame(request)),
+            f"CONTROL {request.name}",
+        )
+
+    # --- enable, disable, stop -----------------------------------------------------------------------
+    def request_enable(self) -> None:
+        """Send CONTROL enable and start an enable attempt; commands carry the enable bit from now on."""
+        self._enable_attempt_faults = self.stats.drive_faults
+        self._enable_seen = False
+        self._enable_mask = 0x80
+        self._send_control(ControlRequest.ENABLE)
+
+    def poll_enabled(self) -> bool:
+        """Read every frame already queued; True once the drive reported enabled since the request.
+
+        Raises :class:`~dob_hil.errors.DriveFault` if no attempt was requested, or the drive
+        reported a fault during the attempt.
+        """
+        self._check_attempt()
+        while True:
+            msg = self._recv(self._bus.recv, 0.0)
+            if msg is None:
+                return self._attempt_result()
+            self._consume(msg)
+            self._check_attempt()
+
+    def wait_enabled(self, timeout_ns: int) -> None:
+        """Block until the drive reports enabled since :meth:`request_enable`; DriveFault if not."""
+        self._check_attempt()
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        while True:
+            remaining_ns = deadline_ns - time.monotonic_ns()
+            msg = self._recv(self._bus.recv, max(remaining_ns, 0) * 1e-9)
+            if msg is None:
+                break
+            self._consume(msg)
+            self._check_attempt()
+            if self._enable_seen:
+                self._attempt_result()
+                return
+        if self.poll_enabled():  # frames that were queued when the deadline passed
+            return
+        self._enable_mask = 0
+        self._enable_attempt_faults = -1
+        state = "nothing" if self._state is None else self._state.name
+        fault = "" if self._last_fault is None else f"; last fault {describe_fault(self._last_fault)}"
+        raise DriveFault(
+            f"node {self._node}: the drive did not report enabled within {timeout_ns / 1e6:g} ms "
+            f"(last reported state: {state}{fault})"
+        )
+
+    def enable(self, timeout_ns: int) -> None:
+        """request_enable() then wait_enabled(timeout_ns): for a drive serviced by its own clock."""
+        self.request_enable()
+        self.wait_enabled(timeout_ns)
+
+    def request_clear_fault(self) -> None:
+        """Send CONTROL clear-fault; the drive reports its new state in a heartbeat."""
+        self._send_control(ControlRequest.CLEAR_FAULT)
+
+    def disable(self) -> None:
+        """Zero-current COMMAND with the enable bit clear, then CONTROL disable. Raises DriveFault."""
+        self._enable_mask = 0
+        self._enable_attempt_faults = -1
+        seq = 0 if self._last_seq is None else self._last_seq
+        self._send(self._command_id, _COMMAND_STRUCT.pack(0, seq & 0x7F), "COMMAND (stop)")
+        self._send_control(ControlRequest.DISABLE)
+
+    def safe_stop(self) -> None:
+        """Zero current with the enable bit clear, then CONTROL disable. Never raises; repeatable.
+
+        Each frame is attempted even if the other fails; failures are reported to ``event_hook``
+        (and the Python log if even that fails). After :meth:`close` it does nothing.
+        """
+        if self._closed:
+            return
+        self._enable_mask = 0
+        self._enable_attempt_faults = -1
+        seq = 0 if self._last_seq is None else self._last_seq
+        self._stop_step(
+            "COMMAND (stop)",
+            lambda: self._send(self._command_id, _COMMAND_STRUCT.pack(0, seq & 0x7F), "COMMAND (stop)"),
+        )
+        self._stop_step("CONTROL DISABLE", lambda: self._send_control(ControlRequest.DISABLE))
+
+    def _stop_step(self, what: str, step: Callable[[], None]) -> None:
+        try:
+            step()
+        except DriveFault:
+            pass  # _send reported SEND_FAILED already
+        except Exception as exc:
+            try:
+                self._event(
+                    self._clock_ns(),
+                    LinkEventKind.SEND_FAILED,
+                    f"node {self._node}: safe_stop: {what} failed: {exc!r}",
+                )
+            except Exception:
+                _log.exception("safe_stop of node %d: %s failed and event_hook raised", self._node, what)
+
+    def close(self) -> None:
+        """safe_stop() once, then shut the bus down if this link owns it. Safe to call twice."""
+        if self._closed:
+            return
+        try:
+            self.safe_stop()
+        finally:
+            self._closed = True
+            if self._owns_bus:
+                try:
+                    self._bus.shutdown()
+                except Exception:
+                    _log.exception("shutting down the CAN bus of node %d failed", self._node)
+
+    def __enter__(self) -> NativeDriveLink:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # --- helpers -----------------------------------------------------------------------------------
+    def _consume(self, msg: can.Message) -> None:
+        now_ns = self._clock_ns()
+        if self._frame_hook is not None:
+            self._frame_hook(msg, True)
+        self.stats.rx_frames += 1
+        self._dispatch(msg, now_ns)
+
+    def _check_attempt(self) -> None:
+        if self._enable_attempt_faults < 0:
+            raise DriveFault(f"node {self._node}: no enable attempt in progress; call request_enable() first")
+        if self.stats.drive_faults > self._enable_attempt_faults:
+            self._enable_mask = 0
+            self._enable_attempt_faults = -1
+            fault = "?" if self._last_fault is None else describe_fault(self._last_fault)
+            raise DriveFault(f"node {self._node}: the drive faulted while enabling: {fault}")
+
+    def _attempt_result(self) -> bool:
+        if self._enable_seen:
+            self._enable_attempt_faults = -1
+            return True
+        return False
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DriveFault(f"node {self._node}: the drive link is closed")
+
+
+def round_half_away(x: float) -> int:
+    """Round to the nearest integer, ties away from zero (C ``lround``); exact for every double."""
+    if x >= 0.0:
+        q = int(x)
+        return q + 1 if x - q >= 0.5 else q
+    q = int(-x)
+    return -(q + 1) if -x - q >= 0.5 else -q
+
+
+def _describe(msg: can.Message) -> str:
+    if msg.is_error_frame:
+        return f"(error class 0x{msg.arbitration_id:X}, data {bytes(msg.data).hex() or '-'})"
+    width = 8 if msg.is_extended_id else 3
+    return f"id 0x{msg.arbitration_id:0{width}X} DLC {msg.dlc} data {bytes(msg.data).hex() or '-'}"
+
+
+__all__ = [
+    "DEFAULT_STALE_WINDOW",
+    "LinkStats",
+    "NativeDriveLink",
+    "describe_fault",
+    "round_half_away",
+]
