@@ -74,8 +74,6 @@ DEFAULT_STALE_WINDOW: Final = 32  # feedback up to this many sequence numbers be
 MAX_READS_AFTER_DEADLINE: Final = 1024  # bounds the drain of already-queued frames after a timeout
 N_AXES: Final = 1
 
-# A non-finite current is reported with this kind once base.LinkEventKind has INVALID_COMMAND.
-_INVALID_COMMAND_KIND: Final = LinkEventKind.__members__.get("INVALID_COMMAND", LinkEventKind.SEND_FAILED)
 
 _FEEDBACK_STRUCT: Final = struct.Struct("<iBB")  # the layout of protocol.FEEDBACK
 _COMMAND_STRUCT: Final = struct.Struct("<hB")  # the layout of protocol.COMMAND
@@ -444,7 +442,7 @@ class NativeDriveLink:
             self.stats.nonfinite_currents += 1
             self._event(
                 self._clock_ns(),
-                _INVALID_COMMAND_KIND,
+                LinkEventKind.INVALID_COMMAND,
                 f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
             )
             return (0,), (0.0,), True
