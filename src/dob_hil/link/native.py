@@ -207,6 +207,8 @@ class NativeDriveLink:
         self._enable_attempt_faults = -1  # stats.drive_faults when the enable attempt began; -1: none
         self._enable_seen = False
         self._closed = False
+        # a valid feedback read while polling for enable is kept for the next receive_feedback()
+        self._pending_feedback: Feedback | None = None
         self.stats = LinkStats()
 
     # --- properties ------------------------------------------------------------------------------
@@ -263,6 +265,9 @@ class NativeDriveLink:
     def receive_feedback(self, timeout_ns: int) -> Feedback | None:
         """The next valid feedback of our drive, or None once ``timeout_ns`` (wall clock) has passed."""
         self._check_open()
+        if self._pending_feedback is not None:
+            pending, self._pending_feedback = self._pending_feedback, None
+            return pending
         recv = self._bus.recv
         clock_ns = self._clock_ns
         hook = self._frame_hook
@@ -626,7 +631,9 @@ class NativeDriveLink:
         if self._frame_hook is not None:
             self._frame_hook(msg, True)
         self.stats.rx_frames += 1
-        self._dispatch(msg, now_ns)
+        feedback = self._dispatch(msg, now_ns)
+        if feedback is not None:
+            self._pending_feedback = feedback  # the newest; an older pending one is superseded
 
     def _check_attempt(self) -> None:
         if self._enable_attempt_faults < 0:

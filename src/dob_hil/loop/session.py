@@ -253,8 +253,12 @@ def _run_with_log(
             log.event(time.monotonic_ns(), "info", "run_start", f"{mode} run of {n_samples} samples")
             if mode == "lockstep":
                 link.request_enable()
-                drive.service()
-                link.wait_enabled(0)
+                for _ in range(3):
+                    drive.service()
+                    if link.poll_enabled():
+                        break
+                else:
+                    raise DriveFault("the simulated drive did not report enabled")
                 exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
             else:
                 if drive is not None:

@@ -1,0 +1,49 @@
+"""``dob-hil design CONFIG``: design the controller, print the report, write the design JSON and plots."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from dob_hil.config import Config, load_config
+from dob_hil.scenarios import resolve_config_path
+
+DESIGN_FILE_NAME = "design.json"
+
+
+def write_design_outputs(
+    config: Config, out_dir: Path, *, quiet: bool = False, plots: bool = True, as_json: bool = False
+) -> dict[str, Any]:
+    """Design ``config``, write ``out_dir/design.json`` and (``plots``) the PNGs, print the report
+    (text, or JSON with ``as_json``; nothing with ``quiet``) and return the report dictionary.
+    Raises DesignError/ConfigError for a design that must not run."""
+    from dob_hil.design import design_with_diagnostics  # noqa: PLC0415
+    from dob_hil.design.analysis import analyze  # noqa: PLC0415
+    from dob_hil.design.report import format_report  # noqa: PLC0415
+
+    result = design_with_diagnostics(config)
+    analysis = analyze(result, config)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    design_path = out_dir / DESIGN_FILE_NAME
+    result.design.save(design_path)
+    files = [design_path]
+    if plots:
+        from dob_hil.design.plots import write_plots  # noqa: PLC0415
+
+        files += write_plots(analysis, out_dir)
+    report = analysis.to_dict()
+    report["files"] = [str(p) for p in files]
+    if as_json:
+        print(json.dumps(report, indent=1, allow_nan=False))
+    elif not quiet:
+        print(format_report(report))
+    return report
+
+
+def main(args: argparse.Namespace) -> int:
+    config = load_config(resolve_config_path(args.config))
+    out_dir = Path(args.out) if args.out else Path("logs") / f"design-{config.name}"
+    write_design_outputs(config, out_dir, plots=not args.no_plots, as_json=args.json)
+    return 0

@@ -1,0 +1,251 @@
+"""Everything ``dob-hil design`` reports about a design, computed once: loop responses with and
+without the DOB, margins, peak sensitivities, disturbance rejection, the DOB gain locus and the LTR
+table. :meth:`DesignAnalysis.to_dict` is the JSON report (numbers only, no frequency arrays).
+
+Margins are loop-at-a-time: for each channel of the loop broken at the plant *input* (Li = K P) and at
+the plant *output* (Lo = P K), the scalar loop of that channel with every other loop closed
+(for a SISO plant both are the same scalar loop K(z) P(z), negative feedback).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.config import Config
+from dob_hil.design.build import DesignResult
+from dob_hil.design.dob import locus_magnitudes
+from dob_hil.design.linalg import Matrix, frequency_grid_hz, max_singular_value
+from dob_hil.design.loops import LoopResponse, design_loop_response, loop_at_a_time
+from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, ltr_report
+from dob_hil.design.margins import Margins, loop_margins
+from dob_hil.design.theorem1 import EXPRESSIONS, dob_matrix, estimator_matrix, feedback_matrix
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Peak:
+    value: float
+    frequency_hz: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "value": self.value,
+            "dB": 20.0 * math.log10(max(self.value, 1e-300)),
+            "at_Hz": self.frequency_hz,
+        }
+
+
+@dataclass(frozen=True)
+class LoopSummary:
+    """Margins and peaks of one configuration (DOB on or off)."""
+
+    response: LoopResponse
+    margins_input: tuple[Margins, ...]
+    margins_output: tuple[Margins, ...]
+    peak_S: Peak
+    peak_T: Peak
+    peak_Si: Peak
+    peak_disturbance: Peak
+    low_frequency_disturbance_gain: float
+    disturbance_at: tuple[tuple[float, float], ...]  # (frequency Hz, |y/w| for the configured input)
+
+
+@dataclass(frozen=True)
+class DesignAnalysis:
+    result: DesignResult
+    frequency_hz: FloatArray
+    dob_on: LoopSummary
+    dob_off: LoopSummary
+    ltr: LtrReport
+    locus_gain: FloatArray
+    locus_magnitudes: Matrix
+    dob_enabled: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return report_dict(self)
+
+
+def _peak(values: FloatArray, w: FloatArray, fn: Any) -> Peak:
+    """Largest value on the grid, refined by a bounded search between its neighbours."""
+    import scipy.optimize  # noqa: PLC0415
+
+    i = int(np.argmax(values))
+    lo, hi = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]
+    best, at = float(values[i]), float(w[i])
+    if hi > lo:
+        res = scipy.optimize.minimize_scalar(
+            lambda x: -float(fn(np.array([x]))[0]), bounds=(float(lo), float(hi)), method="bounded"
+        )
+        if -float(res.fun) > best:
+            best, at = -float(res.fun), float(res.x)
+    return Peak(best, at / (2.0 * math.pi))
+
+
+def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: bool) -> LoopSummary:
+    design = result.design
+
+    def resp(x: FloatArray) -> LoopResponse:
+        return design_loop_response(design, x, dob_enabled)
+
+    r = resp(w)
+
+    def loop_fn(kind: str, ch: int) -> Any:
+        return lambda x: loop_at_a_time(resp(x).Si if kind == "input" else resp(x).S, ch)
+
+    m_in = tuple(loop_margins(loop_fn("input", i), w) for i in range(design.n_inputs))
+    m_out = tuple(loop_margins(loop_fn("output", i), w) for i in range(design.n_outputs))
+
+    def sig(attr: str) -> Any:
+        return lambda x: max_singular_value(getattr(resp(x), attr))
+
+    dist_at: list[tuple[float, float]] = []
+    for dcfg in config.sim.disturbances:
+        if dcfg.kind == "sine" and dcfg.frequency_hz > 0.0:
+            x = np.array([2.0 * math.pi * dcfg.frequency_hz])
+            col = resp(x).disturbance[0, :, dcfg.input_index]
+            dist_at.append((dcfg.frequency_hz, float(np.linalg.norm(col))))
+    return LoopSummary(
+        response=r,
+        margins_input=m_in,
+        margins_output=m_out,
+        peak_S=_peak(max_singular_value(r.S), w, sig("S")),
+        peak_T=_peak(max_singular_value(r.T), w, sig("T")),
+        peak_Si=_peak(max_singular_value(r.Si), w, sig("Si")),
+        peak_disturbance=_peak(max_singular_value(r.disturbance), w, sig("disturbance")),
+        low_frequency_disturbance_gain=float(max_singular_value(r.disturbance)[0]),
+        disturbance_at=tuple(dist_at),
+    )
+
+
+def analyze(result: DesignResult, config: Config, points: int = 1500) -> DesignAnalysis:
+    """Analyse a design (see the module docstring) on ``points`` log-spaced frequencies up to Nyquist."""
+    design = result.design
+    f = frequency_grid_hz(design.period_ns, points)
+    w = 2.0 * math.pi * f
+    dob = result.dob
+    k_hi = 1.5 * dob.k_max if dob.k_max is not None else max(4.0 * dob.gain, 2.0 * dob.k_min_radius, 1.0)
+    gains = np.unique(np.concatenate([np.linspace(0.0, k_hi, 400), [dob.gain, dob.k_min_radius]]))
+    mags = locus_magnitudes(
+        estimator_matrix(design.Phi, design.C, design.Lc), design.Gam, design.C, dob.direction, gains
+    )
+    q_values = config.design.feedback.ltr_q_values or DEFAULT_LTR_Q_VALUES
+    ltr = ltr_report(
+        design.Phi,
+        design.Gam,
+        design.C,
+        design.Lc,
+        Kc_design=design.Kc,
+        R2=result.R2,
+        q_values=q_values,
+        period_s=design.period_s,
+        omega_rad_s=w,
+    )
+    return DesignAnalysis(
+        result=result,
+        frequency_hz=f,
+        dob_on=_summary(result, config, w, True),
+        dob_off=_summary(result, config, w, False),
+        ltr=ltr,
+        locus_gain=gains,
+        locus_magnitudes=mags,
+        dob_enabled=result.dob_enabled,
+    )
+
+
+def _complex_list(M: Matrix) -> list[list[float]]:
+    ev = np.linalg.eigvals(M)
+    ev = ev[np.lexsort((ev.imag, np.abs(ev)))]
+    return [[float(e.real), float(e.imag)] for e in ev]
+
+
+def _loop_dict(s: LoopSummary) -> dict[str, Any]:
+    return {
+        "margins_plant_input": [m.as_dict() for m in s.margins_input],
+        "margins_plant_output": [m.as_dict() for m in s.margins_output],
+        "peak_sensitivity": s.peak_S.as_dict(),
+        "peak_complementary_sensitivity": s.peak_T.as_dict(),
+        "peak_input_sensitivity": s.peak_Si.as_dict(),
+        "disk_margin_bounds_from_peak_S": {
+            "gain_margin_dB": 20.0 * math.log10(s.peak_S.value / (s.peak_S.value - 1.0))
+            if s.peak_S.value > 1.0
+            else None,
+            "phase_margin_deg": math.degrees(2.0 * math.asin(min(1.0, 1.0 / (2.0 * s.peak_S.value)))),
+        },
+        "disturbance_to_output": {
+            "peak": s.peak_disturbance.as_dict(),
+            "lowest_grid_frequency_gain": s.low_frequency_disturbance_gain,
+            "at_configured_disturbances": [{"frequency_Hz": fr, "gain": g} for fr, g in s.disturbance_at],
+        },
+    }
+
+
+def report_dict(a: DesignAnalysis) -> dict[str, Any]:
+    """The JSON report of ``dob-hil design``."""
+    res, d = a.result, a.result.design
+    dob = res.dob
+    Kd_off = np.zeros_like(d.Kdist)
+
+    def dare(sol: Any) -> dict[str, Any] | None:
+        if sol is None:
+            return None
+        return {"solution": sol.P.tolist(), "relative_residual": sol.relative_residual}
+
+    return {
+        "name": d.name,
+        "period_ns": d.period_ns,
+        "nyquist_Hz": 0.5e9 / d.period_ns,
+        "n_plant_states": d.n_plant_states,
+        "input_delay_samples": d.input_delay_samples,
+        "state_names": list(d.state_names),
+        "A": d.A.tolist(),
+        "B": d.B.tolist(),
+        "C_cont": d.C_cont.tolist(),
+        "Phi": d.Phi.tolist(),
+        "Gam": d.Gam.tolist(),
+        "Gam_w": d.Gam_w.tolist(),
+        "C": d.C.tolist(),
+        "Lc": d.Lc.tolist(),
+        "Kc": d.Kc.tolist(),
+        "Kdist": d.Kdist.tolist(),
+        "Kdist_Lc": d.Kdist_Lc.tolist(),
+        "gain_sources": dict(d.gain_sources),
+        "dob_enabled": a.dob_enabled,
+        "spectral_radii": {k: list(v) for k, v in d.spectral_radii.items()},
+        "spectral_radii_dob_off": {
+            "dob": sorted(
+                float(x) for x in np.abs(np.linalg.eigvals(dob_matrix(d.Phi, d.Gam, d.C, d.Lc, Kd_off)))
+            )
+        },
+        "eigenvalues": {
+            "estimator": _complex_list(estimator_matrix(d.Phi, d.C, d.Lc)),
+            "feedback": _complex_list(feedback_matrix(d.Phi, d.Gam, d.Kc)),
+            "dob": _complex_list(dob_matrix(d.Phi, d.Gam, d.C, d.Lc, d.Kdist)),
+        },
+        "matrices": dict(EXPRESSIONS),
+        "riccati": {"estimator": dare(res.estimator_dare), "feedback": dare(res.feedback_dare)},
+        "dob": {
+            "method": dob.method,
+            "direction": dob.direction.tolist(),
+            "direction_kind": dob.direction_kind,
+            "gain": dob.gain,
+            "stable_gain_limit": dob.k_max,
+            "min_radius_gain": dob.k_min_radius,
+            "min_radius": dob.min_radius,
+            "H1": dob.H1.tolist(),
+            "dc_loop_gain": dob.dc_loop_gain.tolist(),
+            "dc_disturbance_estimate_gain": dob.dc_estimate_gain.tolist(),
+        },
+        "loop_dob_on": _loop_dict(a.dob_on),
+        "loop_dob_off": _loop_dict(a.dob_off),
+        "ltr": {
+            "target": "Gtl = C (zI - Phi)^-1 Phi Lc (eq. 8), loop broken at the plant output, DOB off",
+            "R2": a.ltr.R2.tolist(),
+            "rows": [r.as_dict() for r in a.ltr.rows],
+        },
+    }

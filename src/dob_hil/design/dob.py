@@ -1,0 +1,246 @@
+"""Designing the disturbance-observer gain Kdist, and the algebra that shows what it can do.
+
+What the algebra shows. At run time ``u_dist = Kdist (x_bar - x_hat) = -Kdist Lc (y - C x_bar)``
+(eq. 14): Kdist reaches the loop only through the m x p product ``Kdist Lc``, a static gain on the
+estimator's innovation. Any two Kdist with the same Kdist Lc give the same controller.
+
+The DOB is itself a feedback loop. With e = x - x_bar and an input disturbance w (through Gam_w),
+
+    e(k+1) = (A0 - Gam Kdist Lc C) e(k) + Gam_w w(k),     A0 = Phi - Phi Lc C,
+    -u_dist = Kdist Lc C e,
+
+so the disturbance estimate is ``-u_dist = (I + G(z))^-1 Kdist Lc H_w(z) w`` with the DOB loop gain
+``G(z) = Kdist Lc H(z)`` and ``H(z) = C (zI - A0)^-1 Gam`` (the innovation's response to an input at
+the plant input, seen through the estimator). Without delay H_w = H and the estimate is
+``Q(z) w = G (I + G)^-1 w``: a complementary-sensitivity-shaped filter, which is why the paper calls T
+the Q-filter equivalent. Its stability is exactly rho(A0 - Gam Kdist Lc C) < 1 (Theorem 1).
+
+Design methods (``config.design.dob.method``; the gain direction is ``D = pinv(H(1))``, so that
+``Kdist Lc = k D`` makes the DOB loop's DC gain ``G(1) = k I`` when H(1) has full row rank):
+
+* ``dc_loop_gain`` (default, gain k default 1): Kdist Lc = k D. The paper's own Kdist = [18, 3.75]
+  is this direction with k = 1.022, i.e. a DOB loop DC gain of about one.
+* ``stable_fraction`` (gain f in (0, 1), default 0.5): k = f k_max, where k_max is the edge of the
+  stable range (the smallest k > 0 with rho(A0 - k Gam D C) = 1).
+* ``min_radius`` (no gain): k minimising rho(A0 - k Gam D C) over the stable range: the fastest
+  disturbance estimate, usually at the breakaway point where two real poles meet.
+
+Kdist is then the minimum-norm solution ``Kdist = (k D) pinv(Lc)`` (needs rank(Lc) = p).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dob_hil.design.linalg import Matrix, Vector, spectral_radius
+from dob_hil.design.theorem1 import estimator_matrix
+from dob_hil.errors import ConfigError, DesignError
+
+DOB_METHODS = ("dc_loop_gain", "stable_fraction", "min_radius")
+DEFAULT_DOB_METHOD = "dc_loop_gain"
+DEFAULT_GAINS: dict[str, float] = {"dc_loop_gain": 1.0, "stable_fraction": 0.5}
+# The stable-range search scans k over this many decades above and below the reference gain.
+_SCAN_DECADES = (-4.0, 6.0)
+_SCAN_POINTS = 600
+
+
+@dataclass(frozen=True)
+class DobDesign:
+    """The DOB gain, how it was obtained, and where it sits on its locus.
+
+    ``direction`` (m x p) and ``gain`` satisfy ``Kdist Lc = gain * direction``; ``direction_kind`` says
+    whether the direction is ``pinv(H(1))`` (gain = DOB loop DC gain) or the given ``Kdist Lc`` itself
+    (gain = 1 is the design). ``k_max`` is the edge of the stable range along the direction (None if
+    none was found up to 1e6 times the reference gain); ``k_min_radius``/``min_radius`` the best radius.
+    """
+
+    Kdist: Matrix
+    Kdist_Lc: Matrix
+    method: str
+    direction: Matrix
+    direction_kind: str
+    gain: float
+    k_max: float | None
+    k_min_radius: float
+    min_radius: float
+    H1: Matrix
+    dc_loop_gain: Matrix
+    dc_estimate_gain: Matrix
+
+
+def innovation_dc_gain(Phi: Matrix, Gam: Matrix, C: Matrix, Lc: Matrix) -> Matrix:
+    """H(1) = C (I - A0)^-1 Gam with A0 = Phi - Phi Lc C (p x m). Needs A0 stable (no pole at 1)."""
+    A0 = estimator_matrix(Phi, C, Lc)
+    N = Phi.shape[0]
+    return np.asarray(C @ np.linalg.solve(np.eye(N) - A0, Gam), dtype=np.float64)
+
+
+def dc_estimate_gain(
+    Phi: Matrix, Gam: Matrix, Gam_w: Matrix, C: Matrix, Lc: Matrix, *, Kdist: Matrix
+) -> Matrix:
+    """Q(1): steady-state gain from a constant input disturbance w to the estimate -u_dist (m x m)."""
+    N = Phi.shape[0]
+    F = Kdist @ Lc @ C
+    Ae = estimator_matrix(Phi, C, Lc) - Gam @ F
+    return np.asarray(F @ np.linalg.solve(np.eye(N) - Ae, Gam_w), dtype=np.float64)
+
+
+def locus_radius(A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, gains: Vector) -> Vector:
+    """rho(A0 - k Gam direction C) for each k in ``gains``."""
+    GMC = Gam @ direction @ C
+    return np.array([spectral_radius(A0 - float(k) * GMC) for k in np.asarray(gains).ravel()])
+
+
+def locus_magnitudes(A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, gains: Vector) -> Matrix:
+    """All eigenvalue magnitudes (sorted, one row per gain) of A0 - k Gam direction C."""
+    GMC = Gam @ direction @ C
+    return np.array(
+        [np.sort(np.abs(np.linalg.eigvals(A0 - float(k) * GMC))) for k in np.asarray(gains).ravel()]
+    )
+
+
+def stable_edge(A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, k_ref: float) -> float | None:
+    """Smallest k > 0 with rho(A0 - k Gam direction C) = 1 (A0 must be stable), or None if the locus
+    stays inside the unit circle over the scanned range (up to 1e6 k_ref)."""
+    import scipy.optimize  # noqa: PLC0415
+
+    def f(k: float) -> float:
+        return spectral_radius(A0 - k * (Gam @ direction @ C)) - 1.0
+
+    if f(0.0) >= 0.0:
+        raise DesignError(
+            f"estimator: rho(Phi - Phi Lc C) = {f(0.0) + 1.0:.4g} >= 1; no stable DOB gain range"
+        )
+    grid = k_ref * np.logspace(_SCAN_DECADES[0], _SCAN_DECADES[1], _SCAN_POINTS)
+    prev = 0.0
+    for k in grid:
+        if f(float(k)) >= 0.0:
+            return float(scipy.optimize.brentq(f, prev, float(k), xtol=1e-12 * float(k), rtol=1e-12))
+        prev = float(k)
+    return None
+
+
+def min_radius_gain(
+    A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, k_hi: float
+) -> tuple[float, float]:
+    """(k, rho) minimising rho(A0 - k Gam direction C) over 0 <= k <= k_hi (grid, then Brent)."""
+    import scipy.optimize  # noqa: PLC0415
+
+    grid = np.linspace(0.0, k_hi, 801)
+    rho = locus_radius(A0, Gam, C, direction, grid)
+    i = int(np.argmin(rho))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    res = scipy.optimize.minimize_scalar(
+        lambda k: spectral_radius(A0 - k * (Gam @ direction @ C)),
+        bounds=(float(lo), float(hi)),
+        method="bounded",
+        options={"xatol": 1e-10 * max(k_hi, 1e-300)},
+    )
+    k_best, rho_best = float(res.x), float(res.fun)
+    if rho[i] < rho_best:
+        k_best, rho_best = float(grid[i]), float(rho[i])
+    return k_best, rho_best
+
+
+def _kdist_from_product(KdLc: Matrix, Lc: Matrix) -> Matrix:
+    p = Lc.shape[1]
+    rank = int(np.linalg.matrix_rank(Lc))
+    if rank < p:
+        raise DesignError(
+            f"design.dob: Lc has rank {rank} < p = {p}, so Kdist Lc cannot be chosen freely; "
+            "give Kdist explicitly"
+        )
+    return np.asarray(KdLc @ np.linalg.pinv(Lc), dtype=np.float64)
+
+
+def _direction_of(KdLc: Matrix, D: Matrix) -> tuple[Matrix, str, float]:
+    """Express a given Kdist Lc along D = pinv(H(1)) when it is parallel to D, else along itself."""
+    dd = float(np.sum(D * D))
+    if dd > 0.0:
+        k = float(np.sum(KdLc * D)) / dd
+        if k > 0.0 and np.linalg.norm(KdLc - k * D) <= 1e-9 * max(float(np.linalg.norm(KdLc)), 1e-300):
+            return D, "pinv(H(1))", k
+    if float(np.linalg.norm(KdLc)) == 0.0:
+        return D, "pinv(H(1))", 0.0
+    return KdLc, "Kdist Lc", 1.0
+
+
+def design_dob(
+    Phi: Matrix,
+    Gam: Matrix,
+    Gam_w: Matrix,
+    C: Matrix,
+    Lc: Matrix,
+    *,
+    Kdist: Matrix | None,
+    method: str | None,
+    gain: float | None,
+) -> DobDesign:
+    """Kdist given explicitly (``Kdist``) or designed by ``method``/``gain`` (see the module docstring).
+
+    Requires a stable estimator (rho(Phi - Phi Lc C) < 1). Raises ConfigError for an unknown method or
+    a gain out of range, DesignError when the method cannot be applied.
+    """
+    A0 = estimator_matrix(Phi, C, Lc)
+    rho0 = spectral_radius(A0)
+    if rho0 >= 1.0:
+        raise DesignError(f"estimator: rho(Phi - Phi Lc C) = {rho0:.4g} >= 1")
+    H1 = innovation_dc_gain(Phi, Gam, C, Lc)
+    D = np.asarray(np.linalg.pinv(H1), dtype=np.float64)
+    if Kdist is not None:
+        KdLc = Kdist @ Lc
+        direction, kind, k = _direction_of(KdLc, D)
+        used_method = "explicit"
+        Kd = Kdist
+    else:
+        used_method = method or DEFAULT_DOB_METHOD
+        if used_method not in DOB_METHODS:
+            raise ConfigError(
+                "design.dob.method", f"must be one of {', '.join(DOB_METHODS)}; got {used_method!r}"
+            )
+        if not float(np.linalg.norm(D)) > 0.0:
+            raise DesignError(
+                "design.dob: H(1) = C (I - Phi + Phi Lc C)^-1 Gam is zero; give Kdist explicitly"
+            )
+        direction, kind = D, "pinv(H(1))"
+        if used_method == "min_radius":
+            if gain is not None:
+                raise ConfigError("design.dob.gain", "not used by method min_radius; remove it")
+            k = math.nan  # set below
+        else:
+            k = DEFAULT_GAINS[used_method] if gain is None else gain
+            if used_method == "stable_fraction" and not 0.0 < k < 1.0:
+                raise ConfigError("design.dob.gain", f"stable_fraction needs 0 < gain < 1, got {k:g}")
+        Kd = np.zeros((Gam.shape[1], Phi.shape[0]))
+    k_ref = k if k > 0.0 and math.isfinite(k) else 1.0
+    k_max = stable_edge(A0, Gam, C, direction, k_ref)
+    k_best, rho_best = min_radius_gain(A0, Gam, C, direction, k_max if k_max is not None else 1e3 * k_ref)
+    if used_method == "stable_fraction":
+        if k_max is None:
+            raise DesignError(
+                "design.dob: the DOB locus stays stable for every scanned gain, so stable_fraction "
+                "has no range; use dc_loop_gain or min_radius"
+            )
+        k = k * k_max
+    elif used_method == "min_radius":
+        k = k_best
+    if used_method != "explicit":
+        Kd = _kdist_from_product(k * direction, Lc)
+    KdLc = Kd @ Lc
+    return DobDesign(
+        Kdist=np.asarray(Kd, dtype=np.float64),
+        Kdist_Lc=np.asarray(KdLc, dtype=np.float64),
+        method=used_method,
+        direction=direction,
+        direction_kind=kind,
+        gain=float(k),
+        k_max=k_max,
+        k_min_radius=k_best,
+        min_radius=rho_best,
+        H1=H1,
+        dc_loop_gain=np.asarray(KdLc @ H1, dtype=np.float64),
+        dc_estimate_gain=dc_estimate_gain(Phi, Gam, Gam_w, C, Lc, Kdist=Kd),
+    )
