@@ -1,0 +1,284 @@
+"""The drive firmware's logic, independent of any clock: frames in, frames and samples out.
+
+A clock (:mod:`firmware_sim.lockstep` or :mod:`firmware_sim.realtime`) feeds received frames to
+:meth:`DriveCore.on_frame` with their instant, advances the physics with
+:meth:`DriveCore.integrate_to`, closes periods with :meth:`DriveCore.period_boundary` and takes
+a feedback sample with :meth:`DriveCore.sample`. Frames the firmware sends on its own (FAULT,
+HEARTBEAT) queue up for :meth:`DriveCore.take_outgoing`. Times are simulated nanoseconds
+since the simulation started.
+
+Behaviour (the firmware's contract):
+
+* CONTROL requests drive the state machine (:mod:`firmware_sim.state_machine`); every CONTROL
+  frame is answered by a HEARTBEAT with the resulting state (a refused enable in FAULT says
+  FAULT). Leaving ENABLED zeroes the current at once. Heartbeats also go out every 100 ms.
+* A COMMAND is *valid* if it answers a feedback sequence within the acceptance window (the last
+  sample in lockstep; the last ``min(watchdog_periods, 64)`` samples, at least 2, in real time)
+  newer than the last accepted one: a late command still acts, a duplicate or older one is stale.
+  Only valid commands feed the watchdog. While ENABLED the DAC code is
+  clamped at the limit (status SATURATED) and acts ``input_delay_samples`` periods later. A
+  command with the enable bit clear commands zero current; the drive **stays ENABLED** (the bit
+  gates the current, the CONTROL frame owns the state). Commands while DISABLED or in FAULT
+  apply nothing.
+* A frame with our COMMAND/CONTROL id that does not decode (wrong DLC, unknown request) faults
+  the drive: FAULT frame ``BAD_FRAME`` with the id's low byte.
+* The watchdog counts periods while ENABLED; the ``watchdog_periods``-th period in a row without
+  a valid command faults the drive: FAULT frame ``WATCHDOG`` (info = periods, capped at 255) and
+  status FAULT|WATCHDOG until CLEAR_FAULT.
+* A non-finite plant position (a diverging plant) faults the drive with ``ENCODER``.
+* A FAULT frame is sent only when the drive enters FAULT, followed by a HEARTBEAT.
+* FEEDBACK status: ENABLED, SATURATED (the last applied command was clamped), FAULT, WATCHDOG
+  (the fault is the watchdog's). The sequence counts samples mod 256, lost ones included.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from dob_hil.config import Config
+from dob_hil.errors import ProtocolError
+from dob_hil.link.protocol import (
+    COMMAND_SEQ_MODULO,
+    SEQ_MODULO,
+    ControlRequest,
+    DriveState,
+    FaultCode,
+    FaultFrame,
+    FeedbackFrame,
+    FrameKind,
+    HeartbeatFrame,
+    Status,
+    decode_command,
+    decode_control,
+    encode_fault,
+    encode_feedback,
+    encode_heartbeat,
+    frame_id,
+)
+from firmware_sim.actuator import CurrentPath
+from firmware_sim.dac import Dac
+from firmware_sim.disturbance import Disturbance
+from firmware_sim.encoder import Encoder
+from firmware_sim.plant import PlantModel, check_single_axis
+from firmware_sim.state_machine import DriveStateMachine
+from firmware_sim.truth import GroundTruth
+from firmware_sim.watchdog import CommandWatchdog
+
+HEARTBEAT_PERIOD_NS = 100_000_000  # 10 Hz
+REALTIME_ACCEPT_WINDOW_MAX = 64  # half the 7-bit command sequence space
+_ST_OFF = Status(0)
+_ST_ENABLED = Status.ENABLED
+_ST_ENABLED_SATURATED = Status.ENABLED | Status.SATURATED
+_ST_FAULT = Status.FAULT
+_ST_FAULT_WATCHDOG = Status.FAULT | Status.WATCHDOG
+
+OutgoingFrame = tuple[FrameKind, bytes]
+TruthSink = Callable[[GroundTruth], None]
+
+
+class FrameResult(enum.Enum):
+    IGNORED = "ignored"  # not a frame for this drive
+    CONTROL = "control"
+    COMMAND = "command"  # a valid command
+    STALE_COMMAND = "stale_command"  # answers no recent feedback, or a duplicate
+    BAD_FRAME = "bad_frame"  # our id, but does not decode
+
+
+@dataclass
+class DriveStats:
+    """Counters of what the drive saw and did."""
+
+    samples: int = 0
+    feedback_sent: int = 0
+    feedback_lost: int = 0
+    commands_accepted: int = 0
+    commands_stale: int = 0
+    bad_frames: int = 0
+    frames_ignored: int = 0
+    saturations: int = 0
+    overruns: int = 0  # real time: sample instants skipped because the timer fell behind
+    send_failures: int = 0
+
+
+class DriveCore:
+    def __init__(self, config: Config, *, accept_window: int, want_truth: bool) -> None:
+        check_single_axis(config.plant)
+        drive, sim, plant = config.drive, config.sim, config.plant
+        self.node_id = drive.node_id
+        self.command_id = frame_id(FrameKind.COMMAND, drive.node_id)
+        self.control_id = frame_id(FrameKind.CONTROL, drive.node_id)
+        self.period_ns = plant.period_ns
+        self.delay_ns = plant.input_delay_samples * plant.period_ns
+        self.accept_window = accept_window
+        self.want_truth = want_truth
+        self.disturbance = Disturbance(sim.disturbances, plant.period_s / sim.substeps)
+        self.plant = PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
+        self.dac = Dac(drive.dac_lsb_A, drive.current_limit_A)
+        self.encoder = Encoder(
+            drive.encoder_counts_per_unit, drive.encoder_bits, sim.noise_counts_std, sim.seed
+        )
+        self.machine = DriveStateMachine()
+        self.watchdog = CommandWatchdog(drive.watchdog_periods)
+        self.path = CurrentPath()
+        self.stats = DriveStats()
+        self.time_ns = 0  # the physics has been integrated up to here
+        self.saturated = False  # the last applied command was clamped
+        self._samples = 0  # feedback samples taken; the sequence is this mod 256
+        self._last_accepted = -1  # sample number answered by the last valid command
+        self._next_heartbeat_ns = HEARTBEAT_PERIOD_NS
+        self._out: list[OutgoingFrame] = []
+
+    # --- state ---------------------------------------------------------------------------------
+    @property
+    def state(self) -> DriveState:
+        return self.machine.state
+
+    @property
+    def period_index(self) -> int:
+        return self.time_ns // self.period_ns
+
+    @property
+    def last_seq(self) -> int | None:
+        """The sequence number of the last feedback sample, None before the first."""
+        return (self._samples - 1) % SEQ_MODULO if self._samples else None
+
+    def take_outgoing(self) -> list[OutgoingFrame]:
+        out, self._out = self._out, []
+        return out
+
+    # --- frames --------------------------------------------------------------------------------
+    def on_frame(self, arbitration_id: int, data: bytes | bytearray, t_ns: int) -> FrameResult:
+        """Act on a received frame at simulated time ``t_ns`` (>= :attr:`time_ns`)."""
+        if arbitration_id == self.command_id:
+            try:
+                cmd = decode_command(data)
+            except ProtocolError:
+                return self._bad_frame(arbitration_id, t_ns)
+            return self._on_command(cmd.current_counts, cmd.seq, cmd.enable, t_ns)
+        if arbitration_id == self.control_id:
+            try:
+                request = decode_control(data).request
+            except ProtocolError:
+                return self._bad_frame(arbitration_id, t_ns)
+            self._on_control(request, t_ns)
+            return FrameResult.CONTROL
+        self.stats.frames_ignored += 1
+        return FrameResult.IGNORED
+
+    def _answered_sample(self, seq7: int) -> int | None:
+        last = self._samples - 1
+        if last < 0:
+            return None
+        s = last - ((last - seq7) % COMMAND_SEQ_MODULO)
+        if last - s >= self.accept_window or s <= self._last_accepted:
+            return None
+        return s
+
+    def _on_command(self, current_counts: int, seq7: int, enable: bool, t_ns: int) -> FrameResult:
+        s = self._answered_sample(seq7)
+        if s is None:
+            self.stats.commands_stale += 1
+            return FrameResult.STALE_COMMAND
+        self._last_accepted = s
+        self.stats.commands_accepted += 1
+        if self.machine.state is DriveState.ENABLED:
+            if enable:
+                _, applied_A, self.saturated = self.dac.convert(current_counts)
+                if self.saturated:
+                    self.stats.saturations += 1
+            else:
+                applied_A, self.saturated = 0.0, False
+            self.path.schedule(t_ns + self.delay_ns, applied_A)
+        return FrameResult.COMMAND
+
+    def _on_control(self, request: ControlRequest, t_ns: int) -> None:
+        before = self.machine.state
+        after = self.machine.request(request)
+        if before is DriveState.ENABLED and after is not DriveState.ENABLED:
+            self.path.cut(t_ns)
+            self.saturated = False
+        elif after is DriveState.ENABLED and before is not DriveState.ENABLED:
+            self.watchdog.reset()
+            self.saturated = False
+        self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(after))))
+
+    def _bad_frame(self, arbitration_id: int, t_ns: int) -> FrameResult:
+        self.stats.bad_frames += 1
+        self.fault(FaultCode.BAD_FRAME, arbitration_id & 0xFF, t_ns)
+        return FrameResult.BAD_FRAME
+
+    def fault(self, code: FaultCode, info: int, t_ns: int) -> None:
+        """Enter FAULT (zero current, FAULT + HEARTBEAT frames); nothing if already in FAULT."""
+        was_enabled = self.machine.state is DriveState.ENABLED
+        if not self.machine.fault(code):
+            return
+        if was_enabled:
+            self.path.cut(t_ns)
+        self.saturated = False
+        self._out.append((FrameKind.FAULT, encode_fault(FaultFrame(code, min(info, 255)))))
+        self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(DriveState.FAULT))))
+
+    # --- time ----------------------------------------------------------------------------------
+    def integrate_to(self, t_ns: int) -> None:
+        """Advance the physics to ``t_ns``, switching the current at every change due on the way.
+
+        A change due exactly at ``t_ns`` is applied by the next call, so at a sample instant
+        :attr:`CurrentPath.held_A` is the current that acted just before it.
+        """
+        path, plant = self.path, self.plant
+        t = self.time_ns
+        if t < t_ns:
+            path.apply_due(t)
+            if not path.pending:  # the common case: one held current over the whole span
+                plant.advance(t, t_ns, path.held_A)
+                self.time_ns = t_ns
+                return
+        while t < t_ns:
+            path.apply_due(t)
+            nxt = path.next_change_ns()
+            end = t_ns if nxt is None or nxt > t_ns else nxt
+            plant.advance(t, end, path.held_A)
+            t = end
+        self.time_ns = max(self.time_ns, t_ns)
+
+    def period_boundary(self, commanded: bool) -> None:
+        """Close one period at :attr:`time_ns`: watchdog (while ENABLED) and the 10 Hz heartbeat."""
+        if self.machine.state is DriveState.ENABLED and self.watchdog.period_elapsed(commanded):
+            self.fault(FaultCode.WATCHDOG, self.watchdog.missed, self.time_ns)
+        if self.time_ns >= self._next_heartbeat_ns:
+            self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(self.machine.state))))
+            while self._next_heartbeat_ns <= self.time_ns:
+                self._next_heartbeat_ns += HEARTBEAT_PERIOD_NS
+
+    def sample(self) -> tuple[bytes, GroundTruth | None]:
+        """Latch the encoder at :attr:`time_ns`: the FEEDBACK payload and (if wanted) the truth."""
+        state = self.machine.state
+        try:
+            counts = self.encoder.read(self.plant.position())
+        except ValueError:
+            self.fault(FaultCode.ENCODER, 0, self.time_ns)
+            state, counts = self.machine.state, 0
+        if state is DriveState.ENABLED:
+            status = _ST_ENABLED_SATURATED if self.saturated else _ST_ENABLED
+        elif state is DriveState.FAULT:
+            status = _ST_FAULT_WATCHDOG if self.machine.fault_code is FaultCode.WATCHDOG else _ST_FAULT
+        else:
+            status = _ST_OFF
+        seq = self._samples % SEQ_MODULO
+        self._samples += 1
+        self.stats.samples += 1
+        payload = encode_feedback(FeedbackFrame(counts, seq, status))
+        if not self.want_truth:
+            return payload, None
+        t = self.time_ns
+        truth = GroundTruth(
+            period_index=t // self.period_ns,
+            time_ns=t,
+            state=self.plant.state,
+            disturbance_A=self.disturbance.value_A(t * 1e-9),
+            applied_current_A=self.path.held_A,
+            drive_state=state,
+        )
+        return payload, truth

@@ -1,0 +1,156 @@
+"""``SimulatedDrive``: the simulated servo drive on a python-can bus, with either clock.
+
+It behaves like drive firmware and talks only through the bus (the native protocol of
+:mod:`dob_hil.link.protocol`); the true plant state leaves only through ``truth_sink``.
+
+Lockstep (deterministic, as fast as the CPU allows)::
+
+    drive = SimulatedDrive(bus, config)               # clock="lockstep"
+    ... host sends CONTROL enable ...
+    drive.service()        # acts on every pending frame: answers with HEARTBEAT + FEEDBACK seq 0
+    ... host reads feedback, sends COMMAND answering it ...
+    drive.service()        # integrates one period, sends FEEDBACK seq 1
+
+Real time (own timer and receive threads)::
+
+    with SimulatedDrive(bus, config, clock="realtime") as drive:
+        ...                # FEEDBACK every Ts; drive.check() re-raises a thread's exception
+
+The drive does not own the bus: :meth:`close` stops the drive, the caller shuts the bus down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from types import TracebackType
+from typing import Literal
+
+import can
+
+from dob_hil.config import Config
+from dob_hil.link.protocol import DriveState
+from firmware_sim.core import DriveStats, TruthSink
+from firmware_sim.lockstep import LockstepClock
+from firmware_sim.realtime import RealtimeClock
+
+ClockKind = Literal["lockstep", "realtime"]
+
+
+class SimulatedDrive:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        *,
+        clock: ClockKind = "lockstep",
+        truth_sink: TruthSink | None = None,
+        spin_ns: int = 0,
+    ) -> None:
+        """``spin_ns`` (real time only): busy-wait this long before each deadline. Leave 0 when
+        another thread of the same process must run (a spinning thread holds the GIL)."""
+        self.config = config
+        self.clock: ClockKind = clock
+        self._lockstep: LockstepClock | None = None
+        self._realtime: RealtimeClock | None = None
+        if clock == "lockstep":
+            self._lockstep = LockstepClock(bus, config, truth_sink)
+        elif clock == "realtime":
+            self._realtime = RealtimeClock(bus, config, truth_sink, spin_ns=spin_ns)
+        else:
+            raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
+        self._closed = False
+
+    # --- lockstep ------------------------------------------------------------------------------
+    def service(self) -> int:
+        """Lockstep: act on every frame pending on the bus; returns how many were read."""
+        return self._need_lockstep("service").service()
+
+    def advance_period(self) -> None:
+        """Lockstep: one period without a command (the watchdog counts it), then FEEDBACK."""
+        self._need_lockstep("advance_period").advance_period()
+
+    def _need_lockstep(self, what: str) -> LockstepClock:
+        if self._lockstep is None:
+            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
+        return self._lockstep
+
+    # --- real time -----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Real time: start the timer and receive threads (t = 0 now). Nothing in lockstep."""
+        if self._realtime is not None:
+            self._realtime.start()
+
+    def stop(self) -> None:
+        """Real time: stop the threads; re-raise an exception one of them hit. Safe to call twice."""
+        if self._realtime is not None:
+            self._realtime.stop()
+
+    def check(self) -> None:
+        """Real time: re-raise the exception a drive thread stopped on, if any."""
+        if self._realtime is not None:
+            self._realtime.check()
+
+    def close(self) -> None:
+        """Stop the drive (safe to call twice). The bus stays open: it belongs to the caller."""
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
+
+    def __enter__(self) -> SimulatedDrive:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        with contextlib.suppress(Exception):
+            self.close()  # the exception already propagating is the one to see
+
+    # --- read-out ------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        """Real time: the threads are running (started, not stopped, no error). Lockstep: False."""
+        return self._realtime is not None and self._realtime.running
+
+    @property
+    def state(self) -> DriveState:
+        if self._realtime is not None:
+            return self._realtime.snapshot()[0]
+        assert self._lockstep is not None
+        return self._lockstep.core.state
+
+    @property
+    def period_index(self) -> int:
+        """Index of the sample instant the physics has reached (``time_ns // period_ns``)."""
+        if self._realtime is not None:
+            return self._realtime.snapshot()[1]
+        assert self._lockstep is not None
+        return self._lockstep.core.period_index
+
+    @property
+    def true_state(self) -> tuple[float, ...]:
+        """The true plant state at :attr:`time_ns` (for tests and analysis; never on the bus)."""
+        if self._realtime is not None:
+            return self._realtime.snapshot()[2]
+        assert self._lockstep is not None
+        return self._lockstep.core.plant.state
+
+    @property
+    def time_ns(self) -> int:
+        """Simulated time the physics has been integrated to."""
+        if self._realtime is not None:
+            return self._realtime.snapshot()[3]
+        assert self._lockstep is not None
+        return self._lockstep.core.time_ns
+
+    @property
+    def stats(self) -> DriveStats:
+        """A copy of the drive's counters."""
+        if self._realtime is not None:
+            return self._realtime.snapshot()[4]
+        assert self._lockstep is not None
+        return DriveStats(**vars(self._lockstep.core.stats))

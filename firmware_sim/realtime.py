@@ -1,0 +1,217 @@
+"""Real-time clock: the drive runs on its own timer thread, as a drive on its own crystal would.
+
+* The **timer thread** wakes on absolute deadlines ``t0 + k Ts`` (sleep, then optionally spin the
+  last ``spin_ns``: only where no other thread of the process needs the GIL, i.e. in the
+  standalone process). At each deadline it integrates the plant up to the nominal instant
+  ``k Ts``, closes the period (watchdog, heartbeat), latches the encoder and sends FEEDBACK,
+  delayed by the configured latency + jitter or dropped (seeded loss). If it falls more than a
+  period behind it skips to the latest deadline and counts the skipped instants as overruns (the
+  watchdog counts one period per processed instant, so the simulator's own stalls do not trip
+  it).
+* The **receive thread** blocks on ``bus.recv`` and acts on each frame at its arrival instant
+  (the bus timestamp converted to the monotonic clock when plausible, else the time it was
+  read): a command's current acts from its arrival (plus the input delay), so the period is
+  integrated piecewise: old current up to the arrival, new current after.
+* An exception in either thread stops both; :meth:`RealtimeClock.check` and
+  :meth:`RealtimeClock.stop` re-raise it in the caller's thread.
+
+Simulated time is ``time.monotonic_ns() - t0`` with ``t0`` taken at :meth:`RealtimeClock.start`.
+"""
+
+from __future__ import annotations
+
+import collections
+import ctypes
+import sys
+import threading
+import time
+from collections.abc import Callable
+
+import can
+
+from dob_hil.config import Config
+from dob_hil.link.protocol import DriveState, FrameKind
+from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
+from firmware_sim.impairments import FeedbackImpairment
+
+RECV_POLL_S = 0.05  # the receive thread notices stop() within this
+MAX_SLEEP_S = 0.05  # the timer thread notices stop() within this
+TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now are not trusted
+
+
+def _set_timer_slack_1ns() -> None:
+    """Linux: this thread's timer slack to 1 ns (default 50 us), so sleeps end on time."""
+    if sys.platform != "linux":
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        pass
+
+
+class RealtimeClock:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        truth_sink: TruthSink | None = None,
+        *,
+        spin_ns: int = 0,
+    ) -> None:
+        self.bus = bus
+        window = min(config.drive.watchdog_periods, 64)
+        self.core = DriveCore(config, accept_window=max(window, 2), want_truth=truth_sink is not None)
+        self.truth_sink = truth_sink
+        self.spin_ns = spin_ns
+        sim = config.sim
+        self.impairment = FeedbackImpairment(sim.latency_us, sim.jitter_us, sim.loss_probability, sim.seed)
+        self._node_id = self.core.node_id
+        self._lock = threading.Lock()  # guards the core
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._error: BaseException | None = None
+        self._commanded = False  # a valid command since the last sample
+        self._t0_ns = 0
+        self._started = False
+
+    # --- life cycle ----------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._started:
+            raise RuntimeError("the real-time drive was already started")
+        self._started = True
+        self._t0_ns = time.monotonic_ns()
+        for name, target in (("firmware_sim-timer", self._timer_loop), ("firmware_sim-rx", self._rx_loop)):
+            t = threading.Thread(target=self._guarded, args=(target,), name=name, daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def stop(self) -> None:
+        """Stop both threads (safe to call twice); re-raise an exception one of them hit."""
+        self._stop.set()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join()
+        self.check()
+
+    def check(self) -> None:
+        """Re-raise, in the caller's thread, the exception a drive thread stopped on (if any)."""
+        if self._error is not None:
+            raise self._error
+
+    @property
+    def running(self) -> bool:
+        return self._started and not self._stop.is_set()
+
+    def _guarded(self, target: Callable[[], None]) -> None:
+        try:
+            target()
+        except BaseException as exc:  # surfaced by check()/stop()
+            if self._error is None:
+                self._error = exc
+            self._stop.set()
+
+    # --- read-out ------------------------------------------------------------------------------
+    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
+        with self._lock:
+            c = self.core
+            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
+
+    # --- threads -------------------------------------------------------------------------------
+    def _wait_until(self, deadline_ns: int) -> None:
+        spin = self.spin_ns
+        while not self._stop.is_set():
+            remaining = deadline_ns - time.monotonic_ns()
+            if remaining <= 0:
+                return
+            if remaining > spin:
+                time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
+            else:
+                while time.monotonic_ns() < deadline_ns:
+                    pass
+                return
+
+    def _timer_loop(self) -> None:
+        _set_timer_slack_1ns()
+        core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
+        feedback_id = FrameKind.FEEDBACK + self._node_id
+        outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()  # (due, id, payload)
+        delays = self.impairment.delays
+        k = 0
+        while not self._stop.is_set():
+            deadline = t0 + k * period_ns
+            while outbox and outbox[0][0] <= deadline:
+                self._wait_until(outbox[0][0])
+                _, aid, payload = outbox.popleft()
+                self._send(aid, payload)
+            self._wait_until(deadline)
+            if self._stop.is_set():
+                return
+            with self._lock:
+                core.integrate_to(k * period_ns)
+                if k > 0:
+                    core.period_boundary(self._commanded)
+                self._commanded = False
+                frames = core.take_outgoing()
+                payload, truth = core.sample()
+                lost = self.impairment.lost()
+                if lost:
+                    core.stats.feedback_lost += 1
+            for kind, data in frames:
+                self._send(kind + self._node_id, data)
+            if not lost:
+                due = self.impairment.due_ns(deadline) if delays else deadline
+                if due <= time.monotonic_ns() and not outbox:
+                    self._send(feedback_id, payload)
+                else:
+                    outbox.append((due, feedback_id, payload))
+            if truth is not None and self.truth_sink is not None:
+                self.truth_sink(truth)
+            k += 1
+            latest = (time.monotonic_ns() - t0) // period_ns
+            if latest > k:
+                with self._lock:
+                    core.stats.overruns += latest - k
+                k = latest
+
+    def _rx_loop(self) -> None:
+        core, t0 = self.core, self._t0_ns
+        command_id, control_id = core.command_id, core.control_id
+        recv = self.bus.recv
+        while not self._stop.is_set():
+            msg = recv(RECV_POLL_S)
+            if msg is None:
+                continue
+            aid = msg.arbitration_id
+            if aid not in (command_id, control_id) or msg.is_extended_id or msg.is_error_frame:
+                continue  # includes our own frames echoed back by udp_multicast
+            if msg.is_remote_frame:
+                continue
+            now = time.monotonic_ns()
+            arrival = now
+            if msg.timestamp:
+                stamped = round(msg.timestamp * 1e9) - (time.time_ns() - now)
+                if abs(stamped - now) < TIMESTAMP_PLAUSIBLE_NS:
+                    arrival = min(stamped, now)
+            with self._lock:
+                t = max(arrival - t0, core.time_ns)
+                result = core.on_frame(aid, msg.data, t)
+                if result is FrameResult.COMMAND:
+                    self._commanded = True
+                frames = core.take_outgoing()
+            for kind, data in frames:
+                self._send(kind + self._node_id, data)
+
+    def _send(self, arbitration_id: int, payload: bytes) -> None:
+        msg = can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        with self._send_lock:
+            try:
+                self.bus.send(msg)
+            except can.CanError:
+                with self._lock:
+                    self.core.stats.send_failures += 1
+                return
+        if arbitration_id == FrameKind.FEEDBACK + self._node_id:
+            with self._lock:
+                self.core.stats.feedback_sent += 1

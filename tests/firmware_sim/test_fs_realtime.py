@@ -1,0 +1,188 @@
+"""The real-time clock: own timer and receive threads; only counts and ordering are asserted."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+
+import can
+import pytest
+from fs_support import Host, feedbacks, make_config
+
+from dob_hil.link.protocol import (
+    CommandFrame,
+    ControlFrame,
+    ControlRequest,
+    DriveState,
+    FaultCode,
+    FaultFrame,
+    FeedbackFrame,
+    FrameKind,
+    HeartbeatFrame,
+    Status,
+    encode_command,
+    encode_control,
+)
+from firmware_sim import GroundTruth, SimulatedDrive
+from firmware_sim.core import DriveCore, FrameResult
+
+PERIOD_US = 1000.0
+PLANT = {"period_us": PERIOD_US}
+NO_DIST = {"disturbance": None}
+
+
+def collect(host: Host, duration_s: float) -> list[object]:
+    frames: list[object] = []
+    end = time.monotonic() + duration_s
+    while time.monotonic() < end:
+        frames.extend(host.drain(0.01))
+    return frames
+
+
+def seq_steps(fbs: list[FeedbackFrame]) -> list[int]:
+    return [(b.seq - a.seq) % 256 for a, b in itertools.pairwise(fbs)]
+
+
+def test_feedback_every_period_in_order(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    truth: list[GroundTruth] = []
+    cfg = make_config(plant=PLANT, sim=NO_DIST)
+    with SimulatedDrive(drive_bus, cfg, clock="realtime", truth_sink=truth.append) as drive:
+        assert drive.running
+        frames = collect(host, 0.25)
+        drive.check()
+    fbs = feedbacks(frames)  # type: ignore[arg-type]
+    stats = drive.stats
+    assert len(fbs) >= 50  # ~250 expected; the machine may be loaded
+    assert fbs[0].seq == 0 and fbs[0].status == Status(0)
+    steps = seq_steps(fbs)
+    assert all(s >= 1 for s in steps)
+    assert sum(s - 1 for s in steps) <= stats.overruns  # gaps only where the timer skipped ahead
+    assert stats.feedback_sent >= len(fbs) and stats.feedback_lost == 0
+    assert [t.period_index for t in truth] == sorted({t.period_index for t in truth})
+    assert all(t.time_ns == t.period_index * 1_000_000 for t in truth)
+    assert not drive.running  # stopped by the with block
+
+
+def test_host_loop_enables_and_commands_in_real_time(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    truth: list[GroundTruth] = []
+    cfg = make_config(plant=PLANT, sim=NO_DIST, drive={"watchdog_periods": 1000})
+    with SimulatedDrive(drive_bus, cfg, clock="realtime", truth_sink=truth.append) as drive:
+        host.control(ControlRequest.ENABLE)
+        host.wait_for(HeartbeatFrame)
+        answered = 0
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            for f in host.drain(0.01):
+                if isinstance(f, FeedbackFrame) and f.status & Status.ENABLED:
+                    host.command(1024, f.seq)  # 0.5 A
+                    answered += 1
+        time.sleep(0.01)
+        assert drive.state is DriveState.ENABLED
+        stats = drive.stats
+    assert answered >= 20
+    assert stats.commands_accepted >= answered // 2
+    applied = [t.applied_current_A for t in truth]
+    assert 0.5 in applied
+    assert set(applied) <= {0.0, 0.5}
+    # the plant moved forward under the positive current
+    assert truth[-1].state[0] > 0.0 and truth[-1].state[1] > 0.0
+
+
+def test_watchdog_trips_without_commands(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    with SimulatedDrive(
+        drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
+    ) as drive:
+        host.control(ControlRequest.ENABLE)
+        frames = host.wait_for(FaultFrame, timeout_s=5.0)
+        frames += host.wait_for(FeedbackFrame)
+        assert drive.state is DriveState.FAULT
+    assert FaultFrame(FaultCode.WATCHDOG, 5) in frames
+    assert feedbacks(frames)[-1].status == Status.FAULT | Status.WATCHDOG  # type: ignore[arg-type]
+
+
+def test_loss_latency_and_jitter_keep_order(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    sim = {"disturbance": None, "loss_probability": 0.3, "latency_us": 1500.0, "jitter_us": 800.0, "seed": 1}
+    with SimulatedDrive(drive_bus, make_config(plant=PLANT, sim=sim), clock="realtime") as drive:
+        frames = collect(host, 0.25)
+    fbs = feedbacks(frames)  # type: ignore[arg-type]
+    stats = drive.stats
+    assert stats.feedback_lost > 0 and len(fbs) > 20
+    assert all(s >= 1 for s in seq_steps(fbs))  # never reordered
+    assert sum(s - 1 for s in seq_steps(fbs)) > 0  # lost frames leave gaps
+
+
+def test_a_thread_exception_surfaces_in_check_and_stop(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    calls = []
+
+    def bad_sink(truth: GroundTruth) -> None:
+        calls.append(truth)
+        if len(calls) == 3:
+            raise RuntimeError("sink broke")
+
+    drive = SimulatedDrive(bus_pair[1], make_config(plant=PLANT), clock="realtime", truth_sink=bad_sink)
+    drive.start()
+    deadline = time.monotonic() + 5.0
+    while len(calls) < 3 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    time.sleep(0.02)
+    with pytest.raises(RuntimeError, match="sink broke"):
+        drive.check()
+    with pytest.raises(RuntimeError, match="sink broke"):
+        drive.stop()
+    assert len(calls) == 3  # the timer thread stopped on the error
+
+
+def test_start_twice_is_refused_and_stop_twice_is_fine(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    drive = SimulatedDrive(bus_pair[1], make_config(plant=PLANT), clock="realtime")
+    drive.start()
+    with pytest.raises(RuntimeError, match="already started"):
+        drive.start()
+    drive.stop()
+    drive.stop()
+    drive.close()
+
+
+# --- the real-time mechanism without threads: a command acts from its arrival instant ----------------
+def test_command_takes_effect_at_its_arrival_instant() -> None:
+    cfg = make_config(sim=NO_DIST)
+    core = DriveCore(cfg, accept_window=10, want_truth=True)
+    cmd_id, ctl_id = core.command_id, core.control_id
+    core.on_frame(ctl_id, encode_control(ControlFrame(ControlRequest.ENABLE)), 0)
+    core.sample()
+    arrival_ns = 123_000  # inside the first period, in its 5th sub-step
+    core.integrate_to(arrival_ns - 50_000)  # the timer may have integrated part of the way
+    assert (
+        core.on_frame(cmd_id, encode_command(CommandFrame(1024, 0, True)), arrival_ns) is FrameResult.COMMAND
+    )
+    core.integrate_to(300_000)
+    a, b, u, t = 128.59, 2.1484e4, 0.5, (300_000 - arrival_ns) * 1e-9
+    x = b * u / a * (t - (1 - math.exp(-a * t)) / a)
+    v = b * u / a * (1 - math.exp(-a * t))
+    assert core.plant.state == pytest.approx((x, v), rel=1e-9)
+    _, truth = core.sample()
+    assert truth is not None and truth.applied_current_A == 0.5
+
+
+def test_realtime_window_accepts_a_late_command_once() -> None:
+    core = DriveCore(make_config(sim=NO_DIST), accept_window=10, want_truth=False)
+    core.on_frame(core.control_id, encode_control(ControlFrame(ControlRequest.ENABLE)), 0)
+    for _ in range(3):
+        core.sample()  # samples 0, 1, 2
+    late = encode_command(CommandFrame(100, 1, True))
+    assert core.on_frame(core.command_id, late, 0) is FrameResult.COMMAND  # answers sample 1: late, fine
+    assert core.on_frame(core.command_id, late, 0) is FrameResult.STALE_COMMAND  # duplicate
+    older = encode_command(CommandFrame(100, 0, True))
+    assert core.on_frame(core.command_id, older, 0) is FrameResult.STALE_COMMAND  # older than accepted
+    assert (
+        core.on_frame(core.command_id, encode_command(CommandFrame(100, 2, True)), 0) is FrameResult.COMMAND
+    )
+    assert core.on_frame(FrameKind.COMMAND + 9, late, 0) is FrameResult.IGNORED
