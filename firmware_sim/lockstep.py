@@ -38,7 +38,12 @@ class LockstepClock:
         self._node_id = self.core.node_id
 
     def service(self) -> int:
-        """Act on every frame pending on the bus (non-blocking); returns how many were read."""
+        """Act on the frames pending on the bus (non-blocking) until a COMMAND advances the period.
+
+        Returns how many frames were read. Stopping after the command (rather than reading until
+        the queue is empty) saves an empty receive per period; frames sent after the command are
+        handled by the next call, as a real drive handles them in its next period.
+        """
         recv = self.bus.recv
         core = self.core
         command_id, control_id = core.command_id, core.control_id
@@ -59,6 +64,7 @@ class LockstepClock:
             result = core.on_frame(aid, msg.data, core.time_ns)
             if result is FrameResult.COMMAND:
                 self._run_period(commanded=True)
+                return n
             elif (
                 result is FrameResult.CONTROL
                 and before is not DriveState.ENABLED

@@ -25,11 +25,8 @@ from dob_hil.control.reference import Reference
 from dob_hil.control.step import StepFunctions
 from dob_hil.link.base import DriveLink, Feedback
 from dob_hil.log import LogWriter
-
-FLAG_SATURATED = 0x01
-FLAG_OVERRUN = 0x02
-FLAG_MISSING = 0x04
-FLAG_DOB_ON = 0x08
+from dob_hil.log.schemas import FLAG_DOB_ON, FLAG_OVERRUN, FLAG_SATURATED
+from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING as FLAG_MISSING
 
 
 @dataclass
@@ -79,6 +76,9 @@ class ControlCycle:
         self._C_rows = C_rows
         self.consecutive_missing = 0
         self.last_feedback: Feedback | None = None
+        self._last_codes: tuple[int, ...] = (0,) * step.n_inputs
+        self._last_applied: tuple[float, ...] = self._zero_u
+        self._last_u_dist: tuple[float, ...] = self._zero_u
         self.stats = CycleStats()
 
     def on_feedback(self, k: int, time_ns: int, fb: Feedback, lateness_ns: int, overrun: bool) -> None:
@@ -93,6 +93,7 @@ class ControlCycle:
         self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, fb.seq)
+        self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         flags = self._dob_flag | (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if overrun else 0)
         self._log.sample(
             time_ns, fb.rx_time_ns, tx_ns, lateness_ns, fb.counts, fb.position, x_ref, out.x_hat, x_bar,
@@ -121,6 +122,7 @@ class ControlCycle:
         self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, answers_seq)
+        self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         counts = last.counts if last is not None else (0,) * self.n_outputs
         flags = self._dob_flag | FLAG_MISSING | (FLAG_SATURATED if saturated else 0)
         flags |= FLAG_OVERRUN if overrun else 0
@@ -130,6 +132,29 @@ class ControlCycle:
         )  # fmt: skip
         self._account(applied, saturated, overrun, compute_ns)
 
+    def on_lost(self, k: int, time_ns: int, feedback_seq: int) -> None:
+        """Sample ``k`` whose slot has passed unanswered (its feedback lost, or read too late).
+
+        No command is sent (the drive held the last one through that period). The model is
+        advanced over the period with that held input and no measurement update, so that it
+        stays in step with the plant; the sample is logged flagged as missing, with tx time 0.
+        """
+        self.stats.missing += 1
+        x_bar = self.x_bar
+        x_ref = self._ref_at(k)
+        y = tuple(sum(c * x for c, x in zip(row, x_bar, strict=True)) for row in self._C_rows)
+        out = self._update(x_bar, y, x_ref)  # innovation 0: x_hat = x_bar, u_dist = 0
+        applied, u_dist = self._last_applied, self._last_u_dist
+        self.x_bar = self._predict(x_bar, applied, u_dist)
+        last = self.last_feedback
+        counts = last.counts if last is not None else (0,) * self.n_outputs
+        self._log.sample(
+            time_ns, 0, 0, 0, counts, y, x_ref, out.x_hat, x_bar,
+            out.u_fb, u_dist, applied, applied, k, 0, self._last_codes, feedback_seq % 256,
+            self._dob_flag | FLAG_MISSING,
+        )  # fmt: skip
+        self.stats.samples += 1
+
     def _account(self, applied: tuple[float, ...], saturated: bool, overrun: bool, compute_ns: int) -> None:
         s = self.stats
         s.samples += 1
@@ -138,7 +163,5 @@ class ControlCycle:
         if overrun:
             s.overruns += 1
         a = max(abs(u) for u in applied)
-        if a > s.max_abs_applied_A:
-            s.max_abs_applied_A = a
-        if compute_ns > s.compute_ns_max:
-            s.compute_ns_max = compute_ns
+        s.max_abs_applied_A = max(s.max_abs_applied_A, a)
+        s.compute_ns_max = max(s.compute_ns_max, compute_ns)

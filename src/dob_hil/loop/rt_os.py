@@ -7,6 +7,7 @@ lateness of a 300 us loop by an order of magnitude; gen-2 GC pauses are 6-8 ms.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 from dataclasses import dataclass, field
@@ -58,7 +59,5 @@ def restore_rt_settings(settings: RtSettings) -> None:
         gc.enable()
         gc.unfreeze()
     if settings.sched_fifo:
-        try:
+        with contextlib.suppress(OSError, AttributeError):
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except (OSError, AttributeError):
-            pass

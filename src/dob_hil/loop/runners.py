@@ -6,14 +6,12 @@ instant comes about.
 - Lockstep: the embedded drive advances one period per command; ``drive.service()`` runs between
   the command and the next receive, in this thread. Deterministic, as fast as the CPU allows.
   ``time_ns`` is the simulated sample instant ``k * period_ns``.
-- Real time: the drive is the clock (it sends feedback every period). The host expects sample k
-  at the absolute instant ``anchor + k * period_ns``, where the anchor follows the drive's clock
-  with a slow first-order tracker (64 samples) so that drift between the two clocks does not
-  accumulate. A feedback that has not arrived half a period after its instant is *missing* (the
-  cycle substitutes per the policy and still answers, so the drive's watchdog stays fed). A
-  feedback read a full period late or more is an *overrun*: the runner drains what is queued and
-  continues with the newest feedback (skips ahead) rather than answering a burst of stale ones;
-  every skipped sample is counted and reported as an event.
+- Real time: the drive is the clock (it sends feedback every period) and its sequence number
+  the sample index. Sample k's nominal instant is ``anchor + k * period_ns``, where the anchor
+  follows the drive's clock with a slow first-order tracker (64 samples) so that drift between
+  the two clocks does not accumulate; lateness is measured against it. Overruns (newer feedback
+  already queued when one is read) skip ahead to the newest; gaps are filled with model-only
+  samples; every skip is counted and reported as an event (see :func:`run_realtime`).
 """
 
 from __future__ import annotations
@@ -65,7 +63,12 @@ def run_lockstep(
     period_ns = limits.period_ns
     expected_seq: int | None = None
     missing_run = 0
-    on_feedback, on_missing, receive, service = cycle.on_feedback, cycle.on_missing, link.receive_feedback, drive.service
+    on_feedback, on_missing, receive, service = (
+        cycle.on_feedback,
+        cycle.on_missing,
+        link.receive_feedback,
+        drive.service,
+    )
     flush = log.flush
     progress_every = 4096
     for k in range(limits.n_samples):
@@ -107,85 +110,77 @@ def run_realtime(
     clock_ns: Callable[[], int] = time.monotonic_ns,
     progress: Callable[[int], None] | None = None,
 ) -> str:
-    """Answer the drive's feedback in real time for ``limits.n_samples`` periods."""
+    """Answer the drive's feedback in real time for ``limits.n_samples`` periods.
+
+    The drive is the clock and its sequence number the sample index: the host never advances on
+    its own clock, so a stall of either side never makes the two disagree about which sample is
+    due. Each feedback is answered at once. If newer feedback is already queued when one is read
+    (the host fell behind), only the newest is answered (skip ahead, no burst of stale commands)
+    and the sample is flagged as an overrun. A sequence gap (frames lost, or skipped) is filled
+    with :meth:`ControlCycle.on_lost` samples: the model is advanced over each with the input the
+    drive held and no measurement, so it stays in step with the plant and the log has every
+    sample. No feedback for ``timeout_periods`` periods ends the run (host timeout); the drive's
+    own watchdog covers the commands it does not receive.
+    """
     period_ns = limits.period_ns
-    half_period_ns = period_ns // 2
+    timeout_ns = limits.timeout_periods * period_ns
     receive = link.receive_feedback
     fb = receive(first_feedback_timeout_ns)
     if fb is None:
-        raise DriveFault(f"no feedback from the drive within {first_feedback_timeout_ns / 1e9:g} s of enabling")
+        raise DriveFault(
+            f"no feedback from the drive within {first_feedback_timeout_ns / 1e9:g} s of enabling"
+        )
     anchor_ns = fb.rx_time_ns
     expected_seq = fb.seq
-    missing_run = 0
-    skipped_total = 0
+    last_rx_ns = fb.rx_time_ns
     k = 0
     while k < limits.n_samples:
         reason = stop.requested
         if reason is not None:
             return reason
-        instant_ns = anchor_ns + k * period_ns
         if fb is None:
-            wait_ns = instant_ns + half_period_ns - clock_ns()
-            fb = receive(wait_ns if wait_ns > 0 else 0)
-        if fb is None:
-            missing_run += 1
-            if missing_run >= limits.timeout_periods:
-                raise DriveFault(f"no feedback from the drive for {missing_run} periods (host timeout)")
-            now = clock_ns()
-            cycle.on_missing(k, instant_ns, expected_seq, now - instant_ns, now - instant_ns >= period_ns)
-            log.event(now, "warning", "feedback_missing", f"no feedback for sample {k} (seq {expected_seq})")
-            k += 1
-            expected_seq = (expected_seq + 1) % SEQ_MODULO
-            log.flush()
-            continue
+            remaining_ns = last_rx_ns + timeout_ns - clock_ns()
+            if remaining_ns <= 0:
+                raise DriveFault(
+                    f"no feedback from the drive for {limits.timeout_periods} periods "
+                    f"({timeout_ns / 1e6:g} ms: host timeout)"
+                )
+            fb = receive(min(remaining_ns, 20 * period_ns))  # bounded, so a stop request is seen
+            if fb is None:
+                continue
         if fb.fault:
             raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
-        missing_run = 0
+        last_rx_ns = fb.rx_time_ns
+        overrun = False
+        while (newer := receive(0)) is not None:  # only when frames are already queued
+            fb, overrun = newer, True
         delta = _seq_delta(fb.seq, expected_seq)
-        if delta < 0:  # older than expected: already answered or substituted
+        if delta < 0:  # older than expected: a duplicate or a reordered frame
             log.event(clock_ns(), "warning", "stale_feedback", f"feedback seq {fb.seq} is {-delta} behind")
             fb = None
             continue
-        if delta > 0:  # the drive's frames for `delta` samples never reached us
+        if delta > 0:
+            kind = "overrun_skip" if overrun else "feedback_lost"
             log.event(
                 clock_ns(),
                 "warning",
-                "feedback_lost",
-                f"{delta} feedback frame(s) lost before seq {fb.seq} (samples {k}..{k + delta - 1})",
+                kind,
+                f"{delta} sample(s) before seq {fb.seq} {'skipped' if overrun else 'lost'}",
                 {"first_sample": k, "count": delta},
             )
-            skipped_total += delta
-            k += delta
+            cycle.stats.skipped += delta
+            for _ in range(min(delta, limits.n_samples - k)):
+                cycle.on_lost(k, anchor_ns + k * period_ns, expected_seq)
+                k += 1
+                expected_seq = (expected_seq + 1) % SEQ_MODULO
             if k >= limits.n_samples:
                 break
-            instant_ns = anchor_ns + k * period_ns
+        instant_ns = anchor_ns + k * period_ns
         lateness_ns = fb.rx_time_ns - instant_ns
-        overrun = lateness_ns >= period_ns
-        if overrun:
-            # Skip ahead: answer only the newest feedback already queued, not a burst of stale ones.
-            newest = fb
-            drained = 0
-            while (nxt := receive(0)) is not None:
-                newest, drained = nxt, drained + 1
-            if drained:
-                ahead = _seq_delta(newest.seq, fb.seq)
-                log.event(
-                    clock_ns(),
-                    "warning",
-                    "overrun_skip",
-                    f"read sample {k} {lateness_ns / 1000:.0f} us late; skipped {ahead} sample(s)",
-                    {"first_sample": k, "count": ahead, "lateness_ns": lateness_ns},
-                )
-                skipped_total += ahead
-                k += ahead
-                fb = newest
-                expected_seq = newest.seq
-                if k >= limits.n_samples:
-                    break
-                instant_ns = anchor_ns + k * period_ns
-                lateness_ns = fb.rx_time_ns - instant_ns
-        elif -period_ns < lateness_ns:
+        if -period_ns < lateness_ns < period_ns:
             anchor_ns += lateness_ns >> 6  # track the drive's clock (first order, 64 samples)
+        else:
+            anchor_ns = fb.rx_time_ns - k * period_ns  # the drive's clock jumped: re-anchor
         cycle.on_feedback(k, instant_ns, fb, lateness_ns, overrun)
         log.flush()
         k += 1
@@ -193,5 +188,4 @@ def run_realtime(
         fb = None
         if progress is not None and k % 3333 == 0:
             progress(k)
-    cycle.stats.skipped = skipped_total
     return "completed"

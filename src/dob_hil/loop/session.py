@@ -10,7 +10,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import platform
 import signal
 import sys
 import time
@@ -23,9 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
-from dob_hil import __version__
 from dob_hil.config import Config
 from dob_hil.control.reference import make_reference
 from dob_hil.control.step import Gains, compile_step
@@ -35,7 +32,7 @@ from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
 from dob_hil.link.busload import check_bus_load
 from dob_hil.link.native import NativeDriveLink
-from dob_hil.log import LogLayout, LogWriter
+from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
@@ -113,19 +110,6 @@ def _signals(flag: _StopFlag) -> Iterator[None]:
             signal.signal(s, h)
 
 
-def _versions() -> dict[str, str]:
-    import mcap
-
-    return {
-        "dob_hil": __version__,
-        "python": sys.version.split()[0],
-        "numpy": np.__version__,
-        "python-can": can.__version__,
-        "mcap": getattr(mcap, "__version__", "unknown"),
-        "platform": platform.platform(),
-    }
-
-
 def default_log_path(config: Config, dob_enabled: bool) -> Path:
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
     return config.run.log_dir / f"{config.name}-{'dob' if dob_enabled else 'nodob'}-{stamp}.mcap"
@@ -154,26 +138,27 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
         n_outputs=step.n_outputs,
         n_plant_states=config.plant.n_states,
     )
-    run_meta = {
-        "mode": mode,
-        "interface": str(options.interface or ("virtual" if not external_bus else "default")),
-        "channel": str(options.channel or ""),
-        "bitrate_bps": str(options.bitrate or config.drive.bitrate_bps),
-        "period_ns": str(period_ns),
-        "planned_samples": str(n_samples),
-        "dob_enabled": str(dob_enabled).lower(),
-        "scenario": config.name,
-        "started_utc": datetime.now(timezone.utc).isoformat(),
-        "current_limit_A": repr(config.drive.current_limit_A),
-        "dac_lsb_A": repr(config.drive.dac_lsb_A),
-        "encoder_counts_per_unit": repr(config.drive.encoder_counts_per_unit),
-        "missing_feedback_policy": config.run.missing_feedback_policy,
-    }
+    bus = "virtual (embedded firmware_sim)" if not external_bus else f"{options.interface or 'default'}"
+    run_meta = run_metadata(
+        mode=mode,
+        bus=bus,
+        period_ns=period_ns,
+        layout=layout,
+        channel=str(options.channel or ""),
+        bitrate_bps=str(options.bitrate or config.drive.bitrate_bps),
+        planned_samples=str(n_samples),
+        dob_enabled=str(dob_enabled).lower(),
+        scenario=config.name,
+        current_limit_A=repr(config.drive.current_limit_A),
+        dac_lsb_A=repr(config.drive.dac_lsb_A),
+        encoder_counts_per_unit=repr(config.drive.encoder_counts_per_unit),
+        missing_feedback_policy=config.run.missing_feedback_policy,
+    )
     design_json = design.to_json()
     with LogWriter(
         log_path,
         layout,
-        metadata={"run": run_meta, "versions": _versions()},
+        metadata={"run": run_meta, "versions": versions_metadata()},
         attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
     ) as log:
         return _run_with_log(config, options, design, step, reference, log, log_path, mode, n_samples,
@@ -217,7 +202,12 @@ def _run_with_log(
             config,
             clock="realtime" if options.realtime else "lockstep",
             truth_sink=lambda t: log.truth(
-                t.time_ns, t.state, (t.disturbance_A,), (t.applied_current_A,), t.period_index, int(t.drive_state)
+                t.time_ns,
+                t.state,
+                (t.disturbance_A,),
+                (t.applied_current_A,),
+                t.period_index,
+                int(t.drive_state),
             ),
         )
     link = NativeDriveLink(host_bus, config.drive, frame_hook=log.frame, event_hook=on_event, owns_bus=True)
@@ -281,7 +271,8 @@ def _run_with_log(
         link.safe_stop()
         if drive is not None:
             if mode == "lockstep":
-                drive.service()
+                while drive.service():  # the zero command, then the disable
+                    pass
             else:
                 drive.stop()
         if rt_report is not None:

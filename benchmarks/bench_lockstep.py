@@ -1,0 +1,82 @@
+"""Lockstep full stack vs a bare two-frame exchange on the same virtual bus, in the same run.
+
+Full stack: firmware_sim + python-can virtual bus + controller + MCAP logging of samples, frames and
+ground truth (``run_session`` on the paper-step scenario). Baseline: one thread sends a 6-byte
+frame on one end of a virtual bus, receives it on the other end, answers with a 3-byte frame and
+receives that: the two frames of a cycle and nothing else. Goal: >= 30,000 samples/s and within 3x
+of the baseline's per-exchange time.
+
+    .venv/bin/python benchmarks/bench_lockstep.py [--smoke] [--json]
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import can
+
+from _common import median, parser, report
+from dob_hil.config import load_config
+from dob_hil.loop.session import RunOptions, run_session
+from dob_hil.scenarios import scenario_path
+
+
+def bare_exchange_us(n: int) -> float:
+    channel = f"bench-{uuid.uuid4().hex}"
+    host = can.Bus(interface="virtual", channel=channel)
+    drive = can.Bus(interface="virtual", channel=channel)
+    try:
+        fb = bytes(6)
+        cmd = bytes(3)
+        t0 = time.perf_counter_ns()
+        for _ in range(n):
+            drive.send(can.Message(arbitration_id=0x181, data=fb, is_extended_id=False))
+            host.recv(0.0)
+            host.send(can.Message(arbitration_id=0x201, data=cmd, is_extended_id=False))
+            drive.recv(0.0)
+        return (time.perf_counter_ns() - t0) / n / 1000.0
+    finally:
+        host.shutdown()
+        drive.shutdown()
+
+
+def full_stack_us(duration_s: float, tmp: Path, i: int) -> tuple[float, int]:
+    config = load_config(scenario_path("paper-step"))
+    summary = run_session(config, RunOptions(duration_s=duration_s, log_path=tmp / f"lockstep-{i}.mcap"))
+    return summary.wall_time_s / summary.samples * 1e6, summary.log_dropped_records
+
+
+def main() -> None:
+    args = parser(__doc__ or "").parse_args()
+    repeats = 2 if args.smoke else 7
+    duration_s = 0.3 if args.smoke else 10.0
+    n_bare = 2_000 if args.smoke else 50_000
+    bare, full, dropped = [], [], 0
+    with tempfile.TemporaryDirectory() as d:
+        for i in range(repeats):  # interleaved, so both see the same machine state
+            bare.append(bare_exchange_us(n_bare))
+            us, drop = full_stack_us(duration_s, Path(d), i)
+            full.append(us)
+            dropped += drop
+    bare_us, full_us = median(bare), median(full)
+    report(
+        "lockstep full stack vs bare virtual-bus exchange",
+        {
+            "repeats": repeats,
+            "samples_per_run": round(duration_s / 300e-6),
+            "bare_exchange_us": {"median": bare_us, "min": min(bare), "max": max(bare)},
+            "full_stack_us_per_sample": {"median": full_us, "min": min(full), "max": max(full)},
+            "full_stack_samples_per_s": 1e6 / full_us,
+            "ratio_full_over_bare": full_us / bare_us,
+            "log_dropped_records": dropped,
+            "goal": ">= 30000 samples/s and ratio <= 3",
+        },
+        args.json,
+    )
+
+
+if __name__ == "__main__":
+    main()
