@@ -19,9 +19,9 @@ def write_design_outputs(
     """Design ``config``, write ``out_dir/design.json`` and (``plots``) the PNGs, print the report
     (text, or JSON with ``as_json``; nothing with ``quiet``) and return the report dictionary.
     Raises DesignError/ConfigError for a design that must not run."""
-    from dob_hil.design import design_with_diagnostics  # noqa: PLC0415
-    from dob_hil.design.analysis import analyze  # noqa: PLC0415
-    from dob_hil.design.report import format_report  # noqa: PLC0415
+    from dob_hil.design import design_with_diagnostics
+    from dob_hil.design.analysis import analyze
+    from dob_hil.design.report import format_report
 
     result = design_with_diagnostics(config)
     analysis = analyze(result, config)
@@ -30,7 +30,7 @@ def write_design_outputs(
     result.design.save(design_path)
     files = [design_path]
     if plots:
-        from dob_hil.design.plots import write_plots  # noqa: PLC0415
+        from dob_hil.design.plots import write_plots
 
         files += write_plots(analysis, out_dir)
     report = analysis.to_dict()

@@ -42,7 +42,9 @@ class ProgressBar:
         frac = done / total if total else 1.0
         bar = "#" * int(30 * frac)
         rate = done / (now - self._t0) if now > self._t0 else 0.0
-        print(f"\r{self._label} [{bar:<30}] {100 * frac:5.1f}% {rate:,.0f} samples/s", end="", file=sys.stderr)
+        print(
+            f"\r{self._label} [{bar:<30}] {100 * frac:5.1f}% {rate:,.0f} samples/s", end="", file=sys.stderr
+        )
 
     def close(self) -> None:
         if self._enabled and self._last:
@@ -73,7 +75,9 @@ def main(args: argparse.Namespace) -> int:
     from dob_hil.loop.session import RunOptions, run_session
 
     config = load_run_config(args)
-    bar = ProgressBar(f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json)
+    bar = ProgressBar(
+        f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
+    )
     options = RunOptions(
         interface=args.interface,
         channel=args.channel,
@@ -82,8 +86,9 @@ def main(args: argparse.Namespace) -> int:
         duration_s=args.duration,
         log_path=Path(args.log) if args.log else None,
         realtime=args.realtime,
-        rt=RtSettings(sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None,
-                      freeze_gc=args.freeze_gc),
+        rt=RtSettings(
+            sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
+        ),
         progress=bar if (args.duration or config.run.duration_s) >= 5.0 else None,
     )
     try:

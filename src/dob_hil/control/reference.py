@@ -93,7 +93,11 @@ def _read_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]
     if len(rows) < 2:
         raise ConfigError(name, "needs a header row and at least one data row")
     header = [h.strip() for h in rows[0]]
-    if header[:2] != ["time_s", "position"] or len(header) > 3 or (len(header) == 3 and header[2] != "velocity"):
+    if (
+        header[:2] != ["time_s", "position"]
+        or len(header) > 3
+        or (len(header) == 3 and header[2] != "velocity")
+    ):
         raise ConfigError(name, f"header must be time_s,position[,velocity]; got {','.join(header)}")
     times: list[float] = []
     positions: list[float] = []

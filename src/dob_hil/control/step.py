@@ -94,6 +94,10 @@ def _sum(terms: list[str]) -> str:
     return " + ".join(terms) if terms else "0.0"
 
 
+def _tuple(names: list[str]) -> str:
+    return "(" + "".join(f"{v}, " for v in names) + ")"
+
+
 def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
     """Generate the straight-line step for these dimensions and bind the coefficients."""
     gains.check()
@@ -140,15 +144,14 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
         up.append(f"    o{i} = xb{i} - xh{i}")
     for i in range(m):
         up.append(f"    ud{i} = {dot('Kdist', Kdist, i, [f'o{j}' for j in range(n)])}")
-    tup = lambda names: "(" + "".join(f"{v}, " for v in names) + ")"  # noqa: E731
     up.append(
         "    return _Out("
         + ", ".join(
             [
-                tup(xh),
-                tup([f"fb{i}" for i in range(m)]),
-                tup([f"ud{i}" for i in range(m)]),
-                tup([f"fb{i} + ud{i}" for i in range(m)]),
+                _tuple(xh),
+                _tuple([f"fb{i}" for i in range(m)]),
+                _tuple([f"ud{i}" for i in range(m)]),
+                _tuple([f"fb{i} + ud{i}" for i in range(m)]),
             ]
         )
         + ")"
@@ -164,7 +167,7 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
         phi = dot("Phi", gains.Phi, i, xh)
         gam = dot("Gam", gains.Gam, i, [f"v{j}" for j in range(m)])
         pr.append(f"    xn{i} = ({phi}) + ({gam})")
-    pr.append(f"    return {tup([f'xn{i}' for i in range(n)])}")
+    pr.append(f"    return {_tuple([f'xn{i}' for i in range(n)])}")
 
     defaults = "".join(f", {k}={k}" for k in coeffs)
     source = (
@@ -176,7 +179,7 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
     )
     # The namespace holds only the coefficient floats (bound as defaults) and the result type.
     namespace: dict[str, Any] = {"_Out": StepOutput, **coeffs}
-    exec(compile(source, "<dob_hil.control.step generated>", "exec"), namespace)  # noqa: S102
+    exec(compile(source, "<dob_hil.control.step generated>", "exec"), namespace)
     return StepFunctions(namespace["update"], namespace["predict"], n, m, p, source)
 
 
