@@ -28,5 +28,9 @@ class LogReadError(DobHilError):
     """An MCAP log that cannot be read (missing, not MCAP, corrupted beyond its first chunk)."""
 
 
+class LogWriteError(DobHilError):
+    """The log cannot be written: bad path, writer process failed (disk full), bad record value."""
+
+
 class DriveFault(DobHilError):
     """The drive reported a fault, stopped answering, or the run had to stop for safety."""

@@ -33,6 +33,7 @@ from dob_hil.link.bus import open_bus
 from dob_hil.link.busload import check_bus_load
 from dob_hil.link.native import NativeDriveLink
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
+from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
@@ -108,6 +109,41 @@ def _signals(flag: _StopFlag) -> Iterator[None]:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message, bool], None]:
+    """Log frames on the samples' clock, so that frames and samples line up (in Foxglove too).
+
+    Lockstep: the simulated drive's time (the sample instants are ``k * period_ns`` of it). Real
+    time: the bus timestamp (python-can's ``time.time()`` base for most interfaces) moved onto
+    ``time.monotonic_ns`` by the offset between the two clocks taken at the start.
+    """
+    frame_raw = log.frame_raw
+
+    def parts(msg: can.Message) -> tuple[int, int, bytes | bytearray, int]:
+        flags = (
+            (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
+            | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
+            | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
+            | (CAN_FLAG_FD if msg.is_fd else 0)
+        )
+        return msg.arbitration_id, msg.dlc, msg.data or b"", flags
+
+    if lockstep_drive is not None:
+
+        def stamp_lockstep(msg: can.Message, is_rx: bool) -> None:
+            aid, dlc, data, flags = parts(msg)
+            frame_raw(lockstep_drive.time_ns, aid, is_rx, dlc, data, flags)
+
+        return stamp_lockstep
+    offset_ns = time.monotonic_ns() - time.time_ns()
+
+    def stamp_realtime(msg: can.Message, is_rx: bool) -> None:
+        aid, dlc, data, flags = parts(msg)
+        ts = msg.timestamp
+        frame_raw(round(ts * 1e9) + offset_ns if ts else time.monotonic_ns(), aid, is_rx, dlc, data, flags)
+
+    return stamp_realtime
 
 
 def default_log_path(config: Config, dob_enabled: bool) -> Path:
@@ -210,7 +246,8 @@ def _run_with_log(
                 int(t.drive_state),
             ),
         )
-    link = NativeDriveLink(host_bus, config.drive, frame_hook=log.frame, event_hook=on_event, owns_bus=True)
+    frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
+    link = NativeDriveLink(host_bus, config.drive, frame_hook=frame_hook, event_hook=on_event, owns_bus=True)
     cycle = ControlCycle(
         step,
         reference,

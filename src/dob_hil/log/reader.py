@@ -1,0 +1,505 @@
+"""read_log: the whole log as numpy structured arrays, vectorised, tolerant of damage.
+
+For each group of chunks (~8 MiB decompressed) the reader decompresses every chunk once, checks
+its CRC, takes the chunk's MessageIndex records for each channel (``(log_time u64, offset u64)``
+pairs, one ``np.frombuffer``), checks the Message record headers they point at (opcode, length,
+channel, log time, CDR header: one vectorised gather), and gathers the fixed-length payloads with
+one ``np.take`` over a one-byte-stride view of the decompressed group, straight into the
+preallocated output. No Python object is made per message (except events, which are JSON).
+
+The dtypes come from the ros2msg schema text stored in the file (:func:`schemas.parse_msg`), so
+field names are the message fields (``u_cmd_a``, ``dac_counts``, ...) and arrays are subarrays.
+A damaged file gives the readable part and a warning for every loss; only a file that is not an
+MCAP log at all raises :class:`~dob_hil.errors.LogReadError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import mmap
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import numpy.typing as npt
+import zstandard
+
+from dob_hil.errors import LogReadError
+from dob_hil.log import mcap_scan
+from dob_hil.log.mcap_scan import ChunkRef, FileMap
+from dob_hil.log.schemas import (
+    CDR_HEADER_U32,
+    MESSAGE_RECORD_OVERHEAD,
+    TOPIC_CAN,
+    TOPIC_CAN_FD,
+    TOPIC_EVENT,
+    TOPIC_SAMPLE,
+    TOPIC_TRUTH,
+    LogLayout,
+    SchemaError,
+    channel_specs,
+    msg_dtype,
+    parse_msg,
+)
+
+try:  # lz4 is optional: only needed for logs written with compression="lz4"
+    import lz4.frame as _lz4_frame  # type: ignore[import-untyped,unused-ignore]
+except ImportError:  # pragma: no cover
+    _lz4_frame = None
+
+GROUP_BYTES: Final = 8 << 20
+MAX_CHUNK_BYTES: Final = 1 << 30  # a larger uncompressed size is a corrupted field
+FIXED_TOPICS: Final = (TOPIC_SAMPLE, TOPIC_CAN, TOPIC_CAN_FD, TOPIC_TRUTH)
+_HEADER_DTYPE: Final = np.dtype(
+    {
+        "names": ["op", "length", "channel", "log_time", "cdr"],
+        "formats": ["u1", "<u8", "<u2", "<u8", "<u4"],
+        "offsets": [0, 1, 9, 15, 31],
+        "itemsize": 35,
+    }
+)
+_JSON_HEADER_DTYPE: Final = np.dtype(
+    {"names": ["op", "length", "channel", "log_time"], "formats": ["u1", "<u8", "<u2", "<u8"],
+     "offsets": [0, 1, 9, 15], "itemsize": 31}
+)  # fmt: skip
+
+StructArray = npt.NDArray[np.void]
+
+
+@dataclass(slots=True)
+class LogData:
+    """A log read back. Arrays are in file order (the order the loop wrote them)."""
+
+    samples: StructArray  # /dob_hil/sample, fields as in dob_hil/msg/Sample
+    frames: StructArray  # /dob_hil/can (classic frames and FD frames of up to 8 bytes)
+    fd_frames: StructArray  # /dob_hil/can_fd (CAN FD frames of 9..64 bytes)
+    truth: StructArray  # /dob_hil/truth
+    events: list[dict[str, Any]]
+    metadata: dict[str, dict[str, str]]
+    attachments: dict[str, bytes]
+    layout: LogLayout
+    warnings: list[str] = field(default_factory=list)
+    complete: bool = False  # closed cleanly, nothing lost
+
+
+@dataclass(slots=True)
+class _Fixed:
+    """Output of one fixed-size CDR channel."""
+
+    channel_id: int
+    topic: str
+    dtype: np.dtype[np.void]
+    payload_length: int  # CDR header + body
+    out: StructArray
+    filled: int = 0
+
+    def reserve(self, extra: int) -> None:
+        if self.filled + extra > len(self.out):
+            grown = np.zeros(max(self.filled + extra, 2 * len(self.out)), dtype=self.dtype)
+            grown[: self.filled] = self.out[: self.filled]
+            self.out = grown
+
+
+class _Group:
+    """The decompressed records of consecutive chunks, back to back in one buffer."""
+
+    def __init__(self) -> None:
+        self.chunks: list[ChunkRef] = []
+        self.datas: list[bytes] = []
+        self.bases: list[int] = []
+        self.size = 0
+        self.buf = b""
+
+    def add(self, chunk: ChunkRef, data: bytes) -> None:
+        self.chunks.append(chunk)
+        self.datas.append(data)
+        self.bases.append(self.size)
+        self.size += len(data)
+
+    def seal(self) -> None:
+        self.buf = self.datas[0] if len(self.datas) == 1 else b"".join(self.datas)
+
+
+def read_log(path: Path | str, *, topics: Iterable[str] | None = None, verify_crc: bool = True) -> LogData:
+    """Read a dob_hil MCAP log; ``topics`` limits which channels are decoded (all by default)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            size = f.seek(0, 2)
+            if size == 0:
+                raise LogReadError(f"{path}: empty file, not an MCAP log")
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except OSError as exc:
+        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    try:
+        return _Reader(mm, str(path), None if topics is None else set(topics), verify_crc).read()
+    finally:
+        mm.close()
+
+
+class _Reader:
+    def __init__(self, mm: mmap.mmap, path: str, topics: set[str] | None, verify_crc: bool) -> None:
+        self.mm = mm
+        self.path = path
+        self.topics = topics
+        self.verify_crc = verify_crc
+        self.fmap: FileMap = mcap_scan.scan(mm, path)
+        self.warnings = self.fmap.warnings
+        self.dctx = zstandard.ZstdDecompressor()
+        self.first_data: tuple[ChunkRef, bytes] | None = None
+
+    # ------------------------------------------------------------------ top level
+    def read(self) -> LogData:
+        fmap = self.fmap
+        self._learn_channels()
+        layout = self._layout()
+        fixed, event_channel = self._outputs(layout)
+        events: list[dict[str, Any]] = []
+        for group in self._groups():
+            table = self._table(group)
+            for out in fixed.values():
+                self._gather_fixed(group, table, out)
+            if event_channel is not None:
+                self._gather_events(group, table, event_channel, events)
+            self._release(group)
+        by_topic = {out.topic: out.out[: out.filled] for out in fixed.values()}
+        empty = {spec.topic: np.zeros(0, dtype=_spec_dtype(spec.fields)) for spec in _fixed_specs(layout)}
+        return LogData(
+            samples=by_topic.get(TOPIC_SAMPLE, empty[TOPIC_SAMPLE]),
+            frames=by_topic.get(TOPIC_CAN, empty[TOPIC_CAN]),
+            fd_frames=by_topic.get(TOPIC_CAN_FD, empty[TOPIC_CAN_FD]),
+            truth=by_topic.get(TOPIC_TRUTH, empty[TOPIC_TRUTH]),
+            events=events,
+            metadata=fmap.metadata,
+            attachments=fmap.attachments,
+            layout=layout,
+            warnings=self.warnings,
+            complete=fmap.complete and not self.warnings,
+        )
+
+    # ------------------------------------------------------------------ channels and layout
+    def _learn_channels(self) -> None:
+        """Schemas and channels: outside chunks, in the summary, else in the first readable chunk."""
+        if self.fmap.channels:
+            return
+        for chunk in self.fmap.chunks:
+            data = self._decompress(chunk, warn=False)
+            if data is None:
+                continue
+            walk = mcap_scan.walk_chunk(data)
+            for schema in walk.schemas:
+                self.fmap.schemas[schema.id] = schema
+            for channel in walk.channel_records:
+                self.fmap.channels[channel.id] = channel
+            self.first_data = (chunk, data)
+            return
+
+    def _layout(self) -> LogLayout:
+        by_topic = {c.topic: c for c in self.fmap.channels.values()}
+        fields: dict[str, dict[str, int]] = {}
+        for topic in (TOPIC_SAMPLE, TOPIC_TRUTH):
+            channel = by_topic.get(topic)
+            schema = self.fmap.schemas.get(channel.schema_id) if channel is not None else None
+            if schema is None:
+                continue
+            try:
+                fields[topic] = {f.name: f.n_values for f in parse_msg(schema.data.decode(errors="replace"))}
+            except SchemaError as exc:
+                self.warnings.append(f"{topic}: schema {schema.name!r} unusable: {exc}")
+        sample, truth = fields.get(TOPIC_SAMPLE), fields.get(TOPIC_TRUTH)
+        fmt = self.fmap.metadata.get("log_format", {})
+        try:
+            if sample is not None and truth is not None:
+                return LogLayout(sample["x_ref"], sample["u_fb"], sample["counts"], truth["state"])
+            layout = LogLayout(
+                int(fmt["n_states"]), int(fmt["n_inputs"]), int(fmt["n_outputs"]), int(fmt["n_plant_states"])
+            )
+        except (KeyError, ValueError, SchemaError) as exc:
+            raise LogReadError(
+                f"{self.path}: not a dob_hil log (no {TOPIC_SAMPLE}/{TOPIC_TRUTH} schemas and no "
+                f"log_format metadata: {exc})"
+            ) from exc
+        if self.fmap.chunks:
+            self.warnings.append(
+                "channel schemas not found: decoding with the layout of the log_format metadata"
+            )
+        try:
+            ids = json.loads(fmt.get("channels", "{}"))
+        except ValueError:
+            ids = {}
+        specs = {spec.topic: spec for spec in channel_specs(layout)}
+        for key, topic in ids.items() if isinstance(ids, dict) else ():
+            spec = specs.get(str(topic))
+            if spec is not None and str(key).isdigit():
+                self.fmap.schemas.setdefault(
+                    int(key),
+                    mcap_scan.SchemaRecord(
+                        int(key), spec.schema_name, spec.schema_encoding, spec.schema_data()
+                    ),
+                )
+                self.fmap.channels.setdefault(
+                    int(key), mcap_scan.ChannelRecord(int(key), int(key), spec.topic, spec.message_encoding)
+                )
+        return layout
+
+    def _outputs(self, layout: LogLayout) -> tuple[dict[int, _Fixed], int | None]:
+        counts: dict[int, int] = {}
+        for chunk in self.fmap.chunks:
+            for channel_id, (_, count) in chunk.indexes.items():
+                counts[channel_id] = counts.get(channel_id, 0) + count
+        fixed: dict[int, _Fixed] = {}
+        event_channel: int | None = None
+        for channel in self.fmap.channels.values():
+            if self.topics is not None and channel.topic not in self.topics:
+                continue
+            if channel.topic == TOPIC_EVENT and channel.message_encoding == "json":
+                event_channel = channel.id
+                continue
+            if channel.topic not in FIXED_TOPICS:
+                continue
+            schema = self.fmap.schemas.get(channel.schema_id)
+            if schema is None or schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
+                self.warnings.append(f"{channel.topic}: no ros2msg/cdr schema; channel skipped")
+                continue
+            try:
+                dtype = msg_dtype(parse_msg(schema.data.decode(errors="replace")))
+            except SchemaError as exc:
+                self.warnings.append(
+                    f"{channel.topic}: schema {schema.name!r} unusable ({exc}); channel skipped"
+                )
+                continue
+            n = counts.get(channel.id, 0)
+            fixed[channel.id] = _Fixed(
+                channel.id, channel.topic, dtype, 4 + dtype.itemsize, np.zeros(n, dtype)
+            )
+        return fixed, event_channel
+
+    # ------------------------------------------------------------------ chunks
+    def _decompress(self, chunk: ChunkRef, warn: bool = True) -> bytes | None:
+        if self.first_data is not None and self.first_data[0] is chunk:
+            return self.first_data[1]
+        raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
+        where = f"chunk at byte {chunk.offset}"
+        if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+            if warn:
+                self.warnings.append(f"{where}: implausible size {chunk.uncompressed_size}; chunk skipped")
+            return None
+        try:
+            if chunk.compression == "zstd":
+                data = self.dctx.decompress(raw, max_output_size=chunk.uncompressed_size)
+            elif chunk.compression == "":
+                data = raw
+            elif chunk.compression == "lz4" and _lz4_frame is not None:
+                data = _lz4_frame.decompress(raw)
+            else:
+                if warn:
+                    self.warnings.append(
+                        f"{where}: unsupported compression {chunk.compression!r}; chunk skipped"
+                    )
+                return None
+        except (zstandard.ZstdError, RuntimeError, ValueError, MemoryError) as exc:
+            if warn:
+                self.warnings.append(f"{where}: bad compressed data ({exc}); chunk skipped")
+            return None
+        if len(data) != chunk.uncompressed_size:
+            if warn:
+                self.warnings.append(
+                    f"{where}: decompressed to {len(data)} bytes, "
+                    f"expected {chunk.uncompressed_size}; chunk skipped"
+                )
+            return None
+        if self.verify_crc and chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+            if warn:
+                self.warnings.append(f"{where}: CRC mismatch; chunk skipped")
+            return None
+        return bytes(data)
+
+    def _groups(self) -> Iterator[_Group]:
+        group = _Group()
+        for chunk in self.fmap.chunks:
+            data = self._decompress(chunk)
+            if data is None:
+                continue
+            group.add(chunk, data)
+            if group.size >= GROUP_BYTES:
+                group.seal()
+                yield group
+                group = _Group()
+        if group.chunks:
+            group.seal()
+            yield group
+
+    def _release(self, group: _Group) -> None:
+        """Drop the group's file pages from this process (the page cache keeps them)."""
+        start = group.chunks[0].offset // mmap.PAGESIZE * mmap.PAGESIZE
+        end = group.chunks[-1].index_end
+        if end > start and hasattr(self.mm, "madvise"):
+            with contextlib.suppress(OSError, ValueError):
+                self.mm.madvise(mmap.MADV_DONTNEED, start, end - start)
+
+    # ------------------------------------------------------------------ messages
+    def _table(self, group: _Group) -> _Table:
+        """Every Message record of the group, from the message indexes, checked against the records.
+
+        A chunk's index is trusted only if its entries point at Message records of the right
+        channel and log time that tile the chunk exactly (each record ends where the next begins,
+        the last at the chunk's end, and only non-message records precede the first). Otherwise
+        the chunk is re-indexed by walking its records.
+        """
+        n_chunks = len(group.chunks)
+        sizes = np.asarray([len(d) for d in group.datas], dtype=np.int64)
+        bases = np.asarray(group.bases, dtype=np.int64)
+        raw: list[bytes] = []
+        channel_ids: list[int] = []
+        counts: list[int] = []
+        chunk_ids: list[int] = []
+        for i, chunk in enumerate(group.chunks):
+            for channel_id, (pairs_offset, count) in chunk.indexes.items():
+                if count:
+                    raw.append(self.mm[pairs_offset : pairs_offset + 16 * count])
+                    channel_ids.append(channel_id)
+                    counts.append(count)
+                    chunk_ids.append(i)
+        pairs = np.frombuffer(b"".join(raw), dtype="<u8").reshape(-1, 2)
+        channel_of = np.repeat(np.asarray(channel_ids, dtype=np.int64), counts)
+        chunk_of = np.repeat(np.asarray(chunk_ids, dtype=np.int64), counts)
+        size_of = sizes[chunk_of].astype(np.uint64)
+        ok = (pairs[:, 1] < size_of) & (pairs[:, 1] + np.uint64(MESSAGE_RECORD_OVERHEAD) <= size_of)
+        local = np.where(ok, pairs[:, 1], 0).astype(np.int64)
+        offsets = local + bases[chunk_of]
+        order = np.argsort(offsets, kind="stable")
+        offsets, local, chunk_of, channel_of = (
+            offsets[order],
+            local[order],
+            chunk_of[order],
+            channel_of[order],
+        )
+        ok = ok[order]
+        log_times = pairs[order, 0]
+        heads = _gather(group.buf, _JSON_HEADER_DTYPE, np.where(ok, offsets, 0))
+        lengths = np.minimum(heads["length"], np.uint64(1 << 40)).astype(np.int64)
+        ends = local + 9 + lengths
+        ok &= (
+            (heads["op"] == mcap_scan.OP_MESSAGE)
+            & (heads["channel"] == channel_of)
+            & (heads["log_time"] == log_times)
+            & (lengths >= MESSAGE_RECORD_OVERHEAD - 9)
+            & (ends <= sizes[chunk_of])
+        )
+        bad = np.zeros(n_chunks, dtype=bool)
+        bad[chunk_of[~ok]] = True
+        n = len(offsets)
+        is_last = np.ones(n, dtype=bool)
+        if n > 1:
+            same = chunk_of[1:] == chunk_of[:-1]
+            is_last[:-1] = ~same
+            bad[chunk_of[:-1][same & (ends[:-1] != local[1:])]] = True
+        bad[chunk_of[is_last & (ends != sizes[chunk_of])]] = True
+        first_local = sizes.copy()  # a chunk without indexed messages must hold no message at all
+        is_first = np.ones(n, dtype=bool)
+        is_first[1:] = is_last[:-1]
+        first_local[chunk_of[is_first]] = local[is_first]
+        for i in np.flatnonzero(~bad & (first_local > 0)).tolist():
+            prefix = mcap_scan.walk_chunk(group.datas[i], 0, int(first_local[i]))
+            bad[i] = bool(prefix.offsets or prefix.problem)
+        if not bad.any():
+            return _Table(offsets, channel_of, lengths)
+        keep = ~bad[chunk_of]
+        parts = [(offsets[keep], channel_of[keep], lengths[keep])]
+        for i in np.flatnonzero(bad).tolist():
+            chunk = group.chunks[i]
+            if chunk.indexes:
+                self.warnings.append(
+                    f"chunk at byte {chunk.offset}: its message index is damaged; re-indexed from its records"
+                )
+            walk = mcap_scan.walk_chunk(group.datas[i])
+            if walk.problem:
+                self.warnings.append(
+                    f"chunk at byte {chunk.offset}: {walk.problem}; its later messages are lost"
+                )
+            parts.append(
+                (
+                    np.asarray(walk.offsets, dtype=np.int64) + bases[i],
+                    np.asarray(walk.channels, dtype=np.int64),
+                    np.asarray(walk.lengths, dtype=np.int64),
+                )
+            )
+        offsets = np.concatenate([p[0] for p in parts])
+        order = np.argsort(offsets, kind="stable")
+        return _Table(
+            offsets[order],
+            np.concatenate([p[1] for p in parts])[order],
+            np.concatenate([p[2] for p in parts])[order],
+        )
+
+    def _gather_fixed(self, group: _Group, table: _Table, out: _Fixed) -> None:
+        select = table.channels == out.channel_id
+        offsets = table.offsets[select]
+        if len(offsets) == 0:
+            return
+        good = table.lengths[select] == MESSAGE_RECORD_OVERHEAD - 9 + out.payload_length
+        good &= _gather(group.buf, np.dtype("<u4"), np.where(good, offsets + MESSAGE_RECORD_OVERHEAD, 0)) == (
+            CDR_HEADER_U32
+        )
+        if not good.all():
+            self.warnings.append(
+                f"{out.topic}: {int((~good).sum())} messages of the wrong length or encoding skipped"
+            )
+            offsets = offsets[good]
+        out.reserve(len(offsets))
+        void = np.dtype((np.void, out.dtype.itemsize))
+        # Raw void items gather ~5x faster than structured ones (and np.take(out=) copies the view).
+        rows = _gather(group.buf, void, offsets + MESSAGE_RECORD_OVERHEAD + 4)
+        out.out.view(void)[out.filled : out.filled + len(offsets)] = rows
+        out.filled += len(offsets)
+
+    def _gather_events(
+        self, group: _Group, table: _Table, channel_id: int, events: list[dict[str, Any]]
+    ) -> None:
+        select = table.channels == channel_id
+        buf = group.buf
+        for offset, length in zip(
+            table.offsets[select].tolist(), table.lengths[select].tolist(), strict=True
+        ):
+            try:
+                event = json.loads(buf[offset + MESSAGE_RECORD_OVERHEAD : offset + 9 + length])
+            except ValueError as exc:
+                self.warnings.append(f"{TOPIC_EVENT}: a message is not JSON ({exc}); skipped")
+                continue
+            if isinstance(event, dict):
+                events.append(event)
+
+
+@dataclass(slots=True)
+class _Table:
+    """The Message records of a group: global offsets (ascending), channel ids, record lengths."""
+
+    offsets: npt.NDArray[np.int64]
+    channels: npt.NDArray[np.int64]
+    lengths: npt.NDArray[np.int64]
+
+
+def _gather(buf: bytes, dtype: np.dtype[Any], offsets: npt.NDArray[np.int64]) -> npt.NDArray[Any]:
+    """Items of ``dtype`` starting at arbitrary byte ``offsets`` of ``buf`` (a one-byte-stride view)."""
+    count = len(buf) - dtype.itemsize + 1
+    if count <= 0:
+        return np.zeros(len(offsets), dtype=dtype)
+    if dtype.names is not None:  # structured: gather raw bytes, then view (much faster)
+        void = np.dtype((np.void, dtype.itemsize))
+        return np.ndarray((count,), void, buf, 0, (1,))[offsets].view(dtype)
+    return np.ndarray((count,), dtype, buf, 0, (1,))[offsets]
+
+
+def _fixed_specs(layout: LogLayout) -> list[Any]:
+    return [spec for spec in channel_specs(layout) if spec.fields is not None]
+
+
+def _spec_dtype(fields: Any) -> np.dtype[np.void]:
+    return msg_dtype(fields)
+
+
+__all__ = ["LogData", "read_log"]
