@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import socket
 import struct
-from dataclasses import dataclass
-from typing import Final
+from typing import Final, NamedTuple
 
 from dob_hil.errors import ProtocolError
 from dob_hil.link.protocol import DriveState
@@ -35,8 +34,7 @@ _HEADER: Final = struct.Struct("<4sBBHQqdd")
 TRUTH_HEADER_SIZE: Final = _HEADER.size
 
 
-@dataclass(frozen=True, slots=True)
-class GroundTruth:
+class GroundTruth(NamedTuple):  # built every period: a tuple is cheaper than a frozen dataclass
     period_index: int  # sample instant index
     time_ns: int  # simulated time of the sample instant
     state: tuple[float, ...]  # true plant state at the sample instant

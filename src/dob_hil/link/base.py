@@ -13,7 +13,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import can
 
@@ -37,9 +37,9 @@ class LinkEvent:
     message: str
 
 
-@dataclass(frozen=True, slots=True)
-class Feedback:
-    """One decoded, validated feedback sample from the drive."""
+class Feedback(NamedTuple):
+    """One decoded, validated feedback sample from the drive (a NamedTuple: built every period,
+    and a tuple is three times cheaper to construct than a frozen dataclass)."""
 
     rx_time_ns: int  # host receive time (time.monotonic_ns, or the bus timestamp in ns)
     seq: int  # the drive's sequence counter as sent
