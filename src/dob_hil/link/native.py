@@ -116,6 +116,70 @@ def describe_fault(fault: FaultFrame) -> str:
     return f"{fault.code.name} (info {fault.info}{': ' + meaning if meaning else ''})"
 
 
+class DacQuantizer:
+    """The drive's current quantizer and limit, as a pure function of a :class:`DriveConfig`.
+
+    ``code = clamp(round_half_away(u / dac_lsb_A), -L, +L)``, ``L = floor(current_limit_A /
+    dac_lsb_A)`` (exact), applied current ``code * dac_lsb_A``; a non-finite current gives code 0,
+    0 A and ``saturated=True``. :class:`NativeDriveLink` delegates to it, and ``dob-hil replay``
+    uses it to reproduce the link's commands bit for bit. Raises :class:`ConfigError` naming
+    ``drive.dac_lsb_A`` or ``drive.current_limit_A`` for values the protocol cannot carry.
+    """
+
+    __slots__ = ("_limit_code", "_lsb_A", "_round_limit")
+
+    def __init__(self, drive: DriveConfig) -> None:
+        if not drive.dac_lsb_A > 0.0 or not math.isfinite(drive.dac_lsb_A):
+            raise ConfigError("drive.dac_lsb_A", f"must be a finite number > 0, got {drive.dac_lsb_A}")
+        if not 0.0 < drive.current_limit_A < math.inf:
+            raise ConfigError(
+                "drive.current_limit_A", f"must be a finite number > 0, got {drive.current_limit_A}"
+            )
+        # exact floor(limit / lsb): the float quotient can round up (0.7 / 0.01 == 70.0), and then
+        # limit_code * lsb would exceed the limit
+        limit_code = math.floor(Fraction(drive.current_limit_A) / Fraction(drive.dac_lsb_A))
+        if not 1 <= limit_code <= protocol.CURRENT_COUNTS_MAX:
+            raise ConfigError(
+                "drive.current_limit_A",
+                f"{drive.current_limit_A} A is {limit_code} DAC LSBs of {drive.dac_lsb_A} A; "
+                f"must be 1..{protocol.CURRENT_COUNTS_MAX}",
+            )
+        self._lsb_A = drive.dac_lsb_A
+        self._limit_code = limit_code
+        self._round_limit = limit_code + 0.5  # |u / lsb| at or above this rounds beyond the limit
+
+    @property
+    def dac_lsb_A(self) -> float:
+        return self._lsb_A
+
+    @property
+    def limit_code(self) -> int:
+        """floor(current_limit_A / dac_lsb_A): the largest |DAC code| ever produced."""
+        return self._limit_code
+
+    @property
+    def max_current_A(self) -> float:
+        """The largest |current| ever applied: ``limit_code * dac_lsb_A``."""
+        return self._limit_code * self._lsb_A
+
+    def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
+        """((code,), (code * dac_lsb_A,), saturated) for the one axis of the native profile."""
+        if len(current_A) != N_AXES:
+            raise ProtocolError(f"current_A: the native profile drives 1 axis, got {len(current_A)} currents")
+        u = current_A[0]
+        if not -_INF < u < _INF:
+            return (0,), (0.0,), True
+        x = u / self._lsb_A
+        if x >= self._round_limit:
+            code = self._limit_code
+            return (code,), (code * self._lsb_A,), True
+        if x <= -self._round_limit:
+            code = -self._limit_code
+            return (code,), (code * self._lsb_A,), True
+        code = round_half_away(x)
+        return (code,), (code * self._lsb_A,), False
+
+
 class NativeDriveLink:
     """One drive of the native protocol on a python-can bus. See the module docstring."""
 
@@ -146,21 +210,7 @@ class NativeDriveLink:
             raise ConfigError(
                 "drive.profile", f"NativeDriveLink drives the native profile, got {drive.profile!r}"
             )
-        if not drive.dac_lsb_A > 0.0 or not math.isfinite(drive.dac_lsb_A):
-            raise ConfigError("drive.dac_lsb_A", f"must be a finite number > 0, got {drive.dac_lsb_A}")
-        if not 0.0 < drive.current_limit_A < math.inf:
-            raise ConfigError(
-                "drive.current_limit_A", f"must be a finite number > 0, got {drive.current_limit_A}"
-            )
-        # exact floor(limit / lsb): the float quotient can round up (0.7 / 0.01 == 70.0), and then
-        # limit_code * lsb would exceed the limit
-        limit_code = math.floor(Fraction(drive.current_limit_A) / Fraction(drive.dac_lsb_A))
-        if not 1 <= limit_code <= protocol.CURRENT_COUNTS_MAX:
-            raise ConfigError(
-                "drive.current_limit_A",
-                f"{drive.current_limit_A} A is {limit_code} DAC LSBs of {drive.dac_lsb_A} A; "
-                f"must be 1..{protocol.CURRENT_COUNTS_MAX}",
-            )
+        quantizer = DacQuantizer(drive)
         if not drive.encoder_counts_per_unit > 0.0:
             raise ConfigError(
                 "drive.encoder_counts_per_unit", f"must be > 0, got {drive.encoder_counts_per_unit}"
@@ -192,9 +242,10 @@ class NativeDriveLink:
         self._owns_bus = owns_bus
         self._send_timeout_s = None if send_timeout_ns is None else send_timeout_ns * 1e-9
 
-        self._lsb_A = drive.dac_lsb_A
-        self._limit_code = limit_code
-        self._round_limit = limit_code + 0.5  # |u / lsb| at or above this rounds beyond the limit
+        self._quantizer = quantizer
+        self._quantize = quantizer.quantize
+        self._lsb_A = quantizer.dac_lsb_A
+        self._limit_code = quantizer.limit_code
         self._counts_per_unit = drive.encoder_counts_per_unit
         self._unwrapper = CountUnwrapper(drive.encoder_bits)
         self._max_counts_step = 2 ** (drive.encoder_bits - 2) if max_counts_step is None else max_counts_step
@@ -439,27 +490,18 @@ class NativeDriveLink:
 
     # --- quantizing and sending --------------------------------------------------------------------
     def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
-        """((code,), (code * dac_lsb_A,), saturated); see the module docstring for the rule."""
-        if len(current_A) != N_AXES:
-            raise ProtocolError(f"current_A: the native profile drives 1 axis, got {len(current_A)} currents")
-        u = current_A[0]
-        if not -_INF < u < _INF:
+        """((code,), (code * dac_lsb_A,), saturated): :meth:`DacQuantizer.quantize`, plus an
+        INVALID_COMMAND event (and ``stats.nonfinite_currents``) for a non-finite current."""
+        result = self._quantize(current_A)
+        if result[0][0] == 0 and result[2]:  # only a non-finite current gives code 0 and saturated
+            u = current_A[0]
             self.stats.nonfinite_currents += 1
             self._event(
                 self._clock_ns(),
                 LinkEventKind.INVALID_COMMAND,
                 f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
             )
-            return (0,), (0.0,), True
-        x = u / self._lsb_A
-        if x >= self._round_limit:
-            code = self._limit_code
-            return (code,), (code * self._lsb_A,), True
-        if x <= -self._round_limit:
-            code = -self._limit_code
-            return (code,), (code * self._lsb_A,), True
-        code = round_half_away(x)
-        return (code,), (code * self._lsb_A,), False
+        return result
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns().
@@ -547,19 +589,39 @@ class NativeDriveLink:
                 return
         if self.poll_enabled():  # frames that were queued when the deadline passed
             return
+        raise self._not_enabled(timeout_ns)
+
+    def _not_enabled(self, timeout_ns: int) -> DriveFault:
         self._enable_mask = 0
         self._enable_attempt_faults = -1
         state = "nothing" if self._state is None else self._state.name
         fault = "" if self._last_fault is None else f"; last fault {describe_fault(self._last_fault)}"
-        raise DriveFault(
+        return DriveFault(
             f"node {self._node}: the drive did not report enabled within {timeout_ns / 1e6:g} ms "
             f"(last reported state: {state}{fault})"
         )
 
-    def enable(self, timeout_ns: int) -> None:
-        """request_enable() then wait_enabled(timeout_ns): for a drive serviced by its own clock."""
-        self.request_enable()
-        self.wait_enabled(timeout_ns)
+    def enable(self, timeout_ns: int, retry_interval_ns: int = 100_000_000) -> None:
+        """request_enable() then wait_enabled(): for a drive serviced by its own clock.
+
+        The CONTROL enable is repeated every ``retry_interval_ns`` until the drive reports enabled
+        or ``timeout_ns`` passes: a CAN frame can be lost, and a drive (or a simulated drive
+        process) that comes up after the request never saw it. A fault reported meanwhile ends
+        the attempt at once with :class:`~dob_hil.errors.DriveFault`.
+        """
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        faults_before = self.stats.drive_faults
+        while True:
+            self.request_enable()
+            remaining_ns = deadline_ns - time.monotonic_ns()
+            try:
+                self.wait_enabled(max(0, min(retry_interval_ns, remaining_ns)))
+                return
+            except DriveFault:
+                if self.stats.drive_faults > faults_before:
+                    raise
+                if time.monotonic_ns() >= deadline_ns:
+                    raise self._not_enabled(timeout_ns) from None
 
     def request_clear_fault(self) -> None:
         """Send CONTROL clear-fault; the drive reports its new state in a heartbeat."""
@@ -673,6 +735,7 @@ def _describe(msg: can.Message) -> str:
 
 __all__ = [
     "DEFAULT_STALE_WINDOW",
+    "DacQuantizer",
     "LinkStats",
     "NativeDriveLink",
     "describe_fault",

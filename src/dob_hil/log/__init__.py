@@ -34,10 +34,11 @@ Use::
 
 from __future__ import annotations
 
+from dob_hil.errors import LogWriteError
 from dob_hil.log.metadata import run_metadata, versions_metadata
 from dob_hil.log.reader import LogData, read_log
 from dob_hil.log.schemas import LogLayout
-from dob_hil.log.writer import LogStats, LogWriteError, LogWriter
+from dob_hil.log.writer import LogStats, LogWriter
 
 __all__ = [
     "LogData",

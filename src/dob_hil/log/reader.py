@@ -18,8 +18,11 @@ from __future__ import annotations
 import contextlib
 import json
 import mmap
+import threading
 import zlib
+from collections import deque
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -68,6 +71,9 @@ _JSON_HEADER_DTYPE: Final = np.dtype(
 )  # fmt: skip
 
 StructArray = npt.NDArray[np.void]
+
+_READ_THREADS: Final = 2  # chunk decompression workers (zstd and crc32 release the GIL)
+_READ_AHEAD: Final = 32  # chunks in flight at most, to bound memory
 
 
 @dataclass(slots=True)
@@ -279,7 +285,9 @@ class _Reader:
         return fixed, event_channel
 
     # ------------------------------------------------------------------ chunks
-    def _decompress(self, chunk: ChunkRef, warn: bool = True) -> bytes | None:
+    def _decompress(
+        self, chunk: ChunkRef, warn: bool = True, dctx: zstandard.ZstdDecompressor | None = None
+    ) -> bytes | None:
         if self.first_data is not None and self.first_data[0] is chunk:
             return self.first_data[1]
         raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
@@ -290,7 +298,7 @@ class _Reader:
             return None
         try:
             if chunk.compression == "zstd":
-                data = self.dctx.decompress(raw, max_output_size=chunk.uncompressed_size)
+                data = (dctx or self.dctx).decompress(raw, max_output_size=chunk.uncompressed_size)
             elif chunk.compression == "":
                 data = raw
             elif chunk.compression == "lz4" and _lz4_frame is not None:
@@ -318,10 +326,40 @@ class _Reader:
             return None
         return bytes(data)
 
+    def _decompressed(self) -> Iterator[tuple[ChunkRef, bytes | None]]:
+        """Every chunk decompressed and checked, in file order, by a small thread pool.
+
+        zstd and crc32 release the GIL, so a second core nearly halves the read time. At most
+        ``_READ_AHEAD`` chunks are in flight, so memory stays bounded for any file size.
+        """
+        chunks = self.fmap.chunks
+        if len(chunks) < 4:
+            for chunk in chunks:
+                yield chunk, self._decompress(chunk)
+            return
+        local = threading.local()
+
+        def work(chunk: ChunkRef) -> bytes | None:
+            dctx = getattr(local, "dctx", None)
+            if dctx is None:
+                dctx = local.dctx = zstandard.ZstdDecompressor()
+            return self._decompress(chunk, dctx=dctx)
+
+        with ThreadPoolExecutor(max_workers=_READ_THREADS) as pool:
+            pending: deque[tuple[ChunkRef, Future[bytes | None]]] = deque()
+            it = iter(chunks)
+            for chunk in it:
+                pending.append((chunk, pool.submit(work, chunk)))
+                if len(pending) >= _READ_AHEAD:
+                    done, fut = pending.popleft()
+                    yield done, fut.result()
+            while pending:
+                done, fut = pending.popleft()
+                yield done, fut.result()
+
     def _groups(self) -> Iterator[_Group]:
         group = _Group()
-        for chunk in self.fmap.chunks:
-            data = self._decompress(chunk)
+        for chunk, data in self._decompressed():
             if data is None:
                 continue
             group.add(chunk, data)

@@ -1,0 +1,179 @@
+"""A log read back and interpreted: the arrays plus what the attachments and metadata say.
+
+:func:`load_log` reads the MCAP file (:func:`dob_hil.log.read_log`, vectorised) and parses the
+design (``design.json`` attachment) and the config (``config.toml`` attachment) that the run used.
+Nothing here raises for a damaged or incomplete log except a file that is no log at all
+(:class:`~dob_hil.errors.LogReadError`): whatever cannot be recovered becomes a warning naming
+what is lost, and the fields that depend on it are None.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dob_hil.config import Config, parse_config_text
+from dob_hil.design import Design
+from dob_hil.errors import DobHilError
+from dob_hil.log import LogData, read_log
+from dob_hil.log.schemas import FLAG_DOB_ON
+
+DESIGN_ATTACHMENT = "design.json"
+CONFIG_ATTACHMENT = "config.toml"
+
+
+@dataclass
+class LoadedLog:
+    """One log and its interpretation. ``warnings`` holds the reader's and this module's."""
+
+    path: Path
+    data: LogData
+    design: Design | None
+    config: Config | None
+    period_ns: int
+    dob_enabled: bool
+    mode: str  # "lockstep", "realtime" or "unknown"
+    bitrate_bps: int | None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        """A short column title: the file stem and the DOB state."""
+        return f"{self.path.stem} (DOB {'on' if self.dob_enabled else 'off'})"
+
+    @property
+    def run(self) -> dict[str, str]:
+        return self.data.metadata.get("run", {})
+
+    @property
+    def summary(self) -> dict[str, str]:
+        return self.data.metadata.get("summary", {})
+
+    @property
+    def scenario(self) -> str:
+        if "scenario" in self.run:
+            return self.run["scenario"]
+        return self.design.name if self.design is not None else "?"
+
+    @property
+    def current_limit_A(self) -> float | None:
+        """The drive's configured current limit (config, else run metadata)."""
+        if self.config is not None:
+            return self.config.drive.current_limit_A
+        return _float_or_none(self.run.get("current_limit_A"))
+
+
+def _float_or_none(text: str | None) -> float | None:
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if np.isfinite(value) else None
+
+
+def _int_or_none(text: str | None) -> int | None:
+    value = _float_or_none(text)
+    if value is None or value <= 0 or value != int(value):
+        return None
+    return int(value)
+
+
+def _design_of(data: LogData, warnings: list[str]) -> Design | None:
+    blob = data.attachments.get(DESIGN_ATTACHMENT)
+    if blob is None:
+        warnings.append(f"no {DESIGN_ATTACHMENT} attachment: model output, S/T and replay unavailable")
+        return None
+    try:
+        design = Design.from_json(blob.decode("utf-8"))
+    except (UnicodeDecodeError, DobHilError) as exc:
+        warnings.append(f"{DESIGN_ATTACHMENT} attachment unusable ({exc}): model output and S/T unavailable")
+        return None
+    layout = data.layout
+    if (design.n_states, design.n_inputs, design.n_outputs) != (
+        layout.n_states,
+        layout.n_inputs,
+        layout.n_outputs,
+    ):
+        warnings.append(
+            f"{DESIGN_ATTACHMENT}: dimensions {design.n_states}/{design.n_inputs}/{design.n_outputs} "
+            f"do not match the log's {layout.n_states}/{layout.n_inputs}/{layout.n_outputs}; ignored"
+        )
+        return None
+    return design
+
+
+def _config_of(data: LogData, warnings: list[str]) -> Config | None:
+    blob = data.attachments.get(CONFIG_ATTACHMENT)
+    if blob is None:
+        warnings.append(f"no {CONFIG_ATTACHMENT} attachment: drive settings taken from the run metadata")
+        return None
+    try:
+        return parse_config_text(blob.decode("utf-8"), source=Path(CONFIG_ATTACHMENT))
+    except (UnicodeDecodeError, DobHilError) as exc:
+        warnings.append(f"{CONFIG_ATTACHMENT} attachment unusable ({exc})")
+        return None
+
+
+def _period_ns(
+    path: Path, data: LogData, run: dict[str, str], design: Design | None, warnings: list[str]
+) -> int:
+    period = _int_or_none(run.get("period_ns"))
+    if period is not None:
+        return period
+    if design is not None:
+        return design.period_ns
+    t = data.samples["time_ns"]
+    if len(t) >= 2:
+        dt = np.diff(t.astype(np.int64))
+        dt = dt[dt > 0]
+        if len(dt):
+            warnings.append("no period in the run metadata or design: using the median sample spacing")
+            return int(np.median(dt))
+    raise DobHilError(f"{path}: the log holds neither a control period nor enough samples to infer one")
+
+
+def _dob_enabled(data: LogData, run: dict[str, str], warnings: list[str]) -> bool:
+    text = run.get("dob_enabled")
+    if text in ("true", "false"):
+        return text == "true"
+    flags = data.samples["flags"]
+    if len(flags):
+        on = int(np.count_nonzero(flags & FLAG_DOB_ON))
+        warnings.append("no dob_enabled in the run metadata: taken from the samples' DOB flag")
+        return 2 * on >= len(flags)
+    return False
+
+
+def interpret(path: Path, data: LogData) -> LoadedLog:
+    """Interpret an already read log (see the module docstring)."""
+    warnings = list(data.warnings)
+    run = data.metadata.get("run", {})
+    design = _design_of(data, warnings)
+    config = _config_of(data, warnings)
+    if "summary" not in data.metadata:
+        warnings.append("no summary record: the run did not close the log (crash or truncation)")
+    bitrate = _int_or_none(run.get("bitrate_bps"))
+    if bitrate is None and config is not None:
+        bitrate = config.drive.bitrate_bps
+    return LoadedLog(
+        path=path,
+        data=data,
+        design=design,
+        config=config,
+        period_ns=_period_ns(path, data, run, design, warnings),
+        dob_enabled=_dob_enabled(data, run, warnings),
+        mode=run.get("mode", "unknown"),
+        bitrate_bps=bitrate,
+        warnings=warnings,
+    )
+
+
+def load_log(path: Path | str, *, topics: Iterable[str] | None = None) -> LoadedLog:
+    """Read and interpret one log. Raises LogReadError only for a file that is no log at all."""
+    p = Path(path)
+    return interpret(p, read_log(p, topics=topics))

@@ -1,0 +1,242 @@
+"""Metrics of one run over a window (``from_s`` seconds after the first sample to the end).
+
+Vectorised over the log's arrays. The result is a JSON-ready dictionary (floats, ints, lists,
+None for what the log cannot tell); its keys:
+
+``file``, ``scenario``, ``mode``, ``dob_enabled``, ``complete`` (closed cleanly, nothing lost),
+``window_start_s``, ``samples`` (in the window), ``duration_s`` (time the window spans),
+``tracking_error_rms`` / ``tracking_error_max``: reference output ``C x_ref`` minus the true plant
+output at the sample instants with ground truth (``tracking_error_source`` "truth"), or minus the
+measured output where the log holds no truth ("measured"), over all outputs;
+``disturbance_rms``: the injected disturbance w; ``disturbance_estimate_error_rms``: w + u_dist
+(u_dist compensates w, so -u_dist is the estimate); ``disturbance_estimate_gain``: least-squares
+gain of the estimate on w (1 = full amplitude; None without truth or with w = 0);
+``estimation_error_rms``: true minus estimated (x_hat) plant state, one entry per plant state;
+``saturated_fraction``; ``overruns`` (flag bit 1); ``feedback_missing`` (bit 2, substituted);
+``skipped_samples`` (sequence gaps the runner explained in ``feedback_lost``/``overrun_skip``
+events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log);
+``log_dropped_records`` (the summary's count of records of any kind the writer dropped, whole run);
+``latency_us`` (command send minus feedback receive), ``period_jitter_us``
+(|receive interval - period| between consecutive samples with feedback) and ``compute_us``
+(controller step): each ``{"p50", "p99", "max", "n"}``; ``bus_load`` (:mod:`bus_usage`);
+``truth_samples`` (samples matched to ground truth); ``notes`` and ``warnings`` (lists of text).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.analysis.bus_usage import bus_load
+from dob_hil.analysis.loaded import LoadedLog
+from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
+from dob_hil.analysis.signals import Signals, derive_signals
+from dob_hil.log.schemas import FLAG_OVERRUN, FLAG_SATURATED
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def distribution(values: npt.NDArray[Any], scale: float = 1.0) -> dict[str, float | int] | None:
+    """p50, p99, max (times ``scale``) and the count, or None for no values."""
+    if len(values) == 0:
+        return None
+    v = np.asarray(values, dtype=np.float64) * scale
+    p50, p99 = np.percentile(v, [50.0, 99.0])
+    return {"p50": float(p50), "p99": float(p99), "max": float(v.max()), "n": len(v)}
+
+
+def window_start(t_s: FloatArray, from_s: float) -> int:
+    """Index of the first sample at or after ``from_s`` (t_s ascending); len(t_s) if none."""
+    return int(np.searchsorted(t_s, from_s - 1e-12, side="left"))
+
+
+def gap_accounting(seq: npt.NDArray[np.int64], events: list[dict[str, Any]]) -> tuple[int, int]:
+    """(skipped, dropped): sequence numbers absent between the samples ``seq``, split into those
+    a runner event (``feedback_lost``/``overrun_skip`` with ``first_sample`` and ``count``) says
+    were skipped on purpose, and the rest (lost from the log)."""
+    if len(seq) < 2:
+        return 0, 0
+    steps = np.diff(seq)
+    at = np.flatnonzero(steps > 1)
+    if len(at) == 0:
+        return 0, 0
+    lo = seq[at] + 1  # first absent seq of each gap
+    hi = seq[at + 1]  # one past the last
+    ranges = []
+    for ev in events:
+        data = ev.get("data")
+        if ev.get("kind") in SKIP_EVENT_KINDS and isinstance(data, dict):
+            first, count = data.get("first_sample"), data.get("count")
+            if isinstance(first, int) and isinstance(count, int) and count > 0:
+                ranges.append((first, first + count))
+    absent = int(np.sum(hi - lo))
+    if not ranges:
+        return 0, absent
+    covered = _covered_below(ranges)
+    skipped = int(np.sum(covered(hi) - covered(lo)))
+    return skipped, absent - skipped
+
+
+def _covered_below(ranges: list[tuple[int, int]]) -> Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]:
+    """F(x): how many integers below x lie in the union of the half-open ``ranges`` (vectorised)."""
+    merged: list[list[int]] = []
+    for a, b in sorted(ranges):
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    starts = np.array([m[0] for m in merged], dtype=np.int64)
+    lengths = np.array([m[1] - m[0] for m in merged], dtype=np.int64)
+    before = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+
+    def covered(x: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        i = np.searchsorted(starts, x, side="right") - 1
+        ic = np.maximum(i, 0)
+        inside = np.clip(x - starts[ic], 0, lengths[ic])
+        return np.where(i >= 0, before[ic] + inside, 0)
+
+    return covered
+
+
+def _columns(values: npt.NDArray[Any], w: slice, mask: npt.NDArray[np.bool_], width: int) -> list[FloatArray]:
+    """The first ``width`` columns of values[w][mask] as 1-D arrays (ufuncs on one column of a
+    structured field run a fast strided inner loop; on (n, 2) blocks they iterate per row).
+    No boolean gather (a copy) when the mask is all true."""
+    part = values[w]
+    every = bool(mask.all())
+    return [part[:, j] if every else part[:, j][mask] for j in range(width)]
+
+
+def _sum_sq(columns: list[FloatArray]) -> tuple[float, int]:
+    total, count = 0.0, 0
+    for c in columns:
+        finite = c[np.isfinite(c)]
+        total += float(np.dot(finite, finite))
+        count += len(finite)
+    return total, count
+
+
+def _rms_of(columns: list[FloatArray]) -> float | None:
+    total, count = _sum_sq(columns)
+    return math.sqrt(total / count) if count else None
+
+
+def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, int]:
+    truth = sig.has_truth[w]
+    p = sig.y_ref.shape[1]
+    if truth.any():
+        mask, other, source = truth, sig.y_true, "truth"
+    else:
+        mask, other, source = sig.has_feedback[w], sig.y_meas, "measured"
+    refs, outs = _columns(sig.y_ref, w, mask, p), _columns(other, w, mask, p)
+    e = [r - y for r, y in zip(refs, outs, strict=True)]
+    used = len(e[0]) if e else 0
+    if used == 0:
+        return None, None, source, 0
+    return _rms_of(e), max(float(np.abs(c).max()) for c in e), source, used
+
+
+def _disturbance(log: LoadedLog, sig: Signals, w: slice) -> dict[str, Any]:
+    truth = sig.has_truth[w]
+    out: dict[str, Any] = {
+        "disturbance_rms": None,
+        "disturbance_estimate_error_rms": None,
+        "disturbance_estimate_gain": None,
+        "estimation_error_rms": None,
+    }
+    if not truth.any():
+        return out
+    m = sig.w_A.shape[1]
+    dist = _columns(sig.w_A, w, truth, m)
+    u_dist = _columns(log.data.samples["u_dist"], w, truth, m)
+    out["disturbance_rms"] = _rms_of(dist)
+    out["disturbance_estimate_error_rms"] = _rms_of([d + u for d, u in zip(dist, u_dist, strict=True)])
+    ww = _sum_sq(dist)[0]
+    wu = sum(-float(np.dot(d, u)) for d, u in zip(dist, u_dist, strict=True))
+    out["disturbance_estimate_gain"] = wu / ww if ww > 0 else None
+    n_plant = log.data.layout.n_plant_states
+    if n_plant <= log.data.layout.n_states:
+        x_true = _columns(sig.x_true, w, truth, n_plant)
+        x_hat = _columns(log.data.samples["x_hat"], w, truth, n_plant)
+        out["estimation_error_rms"] = [_rms_of([t - h]) for t, h in zip(x_true, x_hat, strict=True)]
+    return out
+
+
+def _timing(log: LoadedLog, sig: Signals, first: int) -> dict[str, Any]:
+    s = log.data.samples[first:]
+    fb = sig.has_feedback[first:]
+    rx = s["rx_time_ns"].view(np.int64)  # ns since an epoch: below 2**63
+    tx = s["tx_time_ns"].view(np.int64)
+    seq = s["seq"].astype(np.int64)
+    latency = (tx - rx)[fb & (tx > 0)]
+    pair = fb[1:] & fb[:-1] & (np.diff(seq) == 1)
+    jitter = np.abs(np.diff(rx) - log.period_ns)[pair]
+    return {
+        "latency_us": distribution(latency, 1e-3),
+        "period_jitter_us": distribution(jitter, 1e-3),
+        "compute_us": distribution(s["compute_ns"], 1e-3),
+    }
+
+
+def _int_or_none(text: str | None) -> int | None:
+    try:
+        return int(text) if text is not None else None
+    except ValueError:
+        return None
+
+
+def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = None) -> dict[str, Any]:
+    """The metrics dictionary of the module docstring."""
+    sig = signals if signals is not None else derive_signals(log)
+    s = log.data.samples
+    first = window_start(sig.t_s, from_s)
+    w = slice(first, None)
+    n = len(s) - first
+    warnings = list(log.warnings)
+    notes: list[str] = []
+    if n == 0:
+        end = float(sig.t_s[-1]) if len(s) else 0.0
+        warnings.append(f"no samples in the window: --from {from_s:g} s is past the log's end ({end:.4f} s)")
+    flags = s["flags"][w]
+    seq = s["seq"][w].astype(np.int64)
+    skipped, dropped = gap_accounting(seq, log.data.events)
+    rms, emax, source, used = _tracking(sig, w)
+    if source == "measured":
+        notes.append("no ground truth: tracking error against the measured output")
+    if log.mode == "lockstep":
+        notes.append(
+            "lockstep run: latency and jitter are host wall-clock times of a simulation "
+            "running faster than real time, not real-time behaviour"
+        )
+    t = sig.t_s[w]
+    metrics: dict[str, Any] = {
+        "file": str(log.path),
+        "scenario": log.scenario,
+        "mode": log.mode,
+        "dob_enabled": log.dob_enabled,
+        "complete": bool(log.data.complete),
+        "window_start_s": float(t[0]) if n else None,
+        "samples": n,
+        "duration_s": float(t[-1] - t[0]) + log.period_ns * 1e-9 if n else 0.0,
+        "tracking_error_rms": rms,
+        "tracking_error_max": emax,
+        "tracking_error_source": source,
+        **_disturbance(log, sig, w),
+        "saturated_fraction": float(np.count_nonzero(flags & FLAG_SATURATED)) / n if n else None,
+        "overruns": int(np.count_nonzero(flags & FLAG_OVERRUN)),
+        "feedback_missing": int(np.count_nonzero(~sig.has_feedback[w])),
+        "skipped_samples": skipped,
+        "dropped_samples": dropped,
+        "log_dropped_records": _int_or_none(log.summary.get("dropped_records")),
+        **_timing(log, sig, first),
+        "bus_load": bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
+        "truth_samples": int(np.count_nonzero(sig.has_truth[w])),
+        "tracking_error_samples": used,
+        "notes": notes,
+        "warnings": warnings,
+    }
+    return metrics

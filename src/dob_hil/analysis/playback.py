@@ -1,0 +1,110 @@
+"""``replay --to-bus``: put a log's recorded frames back on a CAN bus with their original timing.
+
+Frame i is sent at the absolute deadline ``start + (t_i - t_0)`` (its timestamp relative to the
+first frame's; deadlines never drift with the time the sends themselves take). The thread sleeps
+until each deadline (with the timer slack lowered where Linux allows), then sends; a frame whose
+deadline has passed is sent at once and counted late. Error frames cannot be transmitted and are
+skipped (counted). Received copies of our own transmitted ids (udp_multicast delivers a process
+its own frames, so such logs hold each command twice) are skipped too, so the bus sees each
+frame once.
+
+Caution: the recording holds the host's COMMAND frames; a live drive listening on the target bus
+with the logged node id acts on them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import can
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.analysis.bus_usage import counted_frames
+from dob_hil.analysis.frames import frame_messages
+from dob_hil.analysis.metrics import distribution
+from dob_hil.errors import DriveFault
+from dob_hil.log.schemas import CAN_FLAG_ERROR
+
+StructArray = npt.NDArray[np.void]
+START_LEAD_NS = 5_000_000  # the first frame goes out this long after the start
+
+
+@dataclass
+class PlaybackStats:
+    frames_sent: int
+    skipped_error_frames: int
+    skipped_own_echoes: int
+    duration_s: float  # of the recording, first to last frame sent
+    late_frames: int  # sent more than ``late_threshold_us`` after their deadline
+    late_threshold_us: float
+    lateness_us: dict[str, float | int] | None  # p50, p99, max, n
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _set_timer_slack_1ns() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        pass
+
+
+def play_frames(
+    bus: can.BusABC,
+    frames: StructArray,
+    fd_frames: StructArray | None = None,
+    *,
+    clock_ns: Callable[[], int] = time.monotonic_ns,
+    sleep: Callable[[float], None] = time.sleep,
+    late_threshold_us: float = 1000.0,
+    progress: Callable[[int, int], None] | None = None,
+) -> PlaybackStats:
+    """Send the frames onto ``bus`` at their recorded relative times (module docstring).
+    Raises DriveFault when the bus refuses a frame."""
+    keep = counted_frames(frames) if len(frames) else np.zeros(0, dtype=bool)
+    errors = int(np.count_nonzero((frames["flags"] & CAN_FLAG_ERROR) != 0))
+    echoes = int(len(frames) - np.count_nonzero(keep) - errors)
+    selected = frames[keep]
+    fd = fd_frames if fd_frames is not None else frames[:0]
+    total = len(selected) + len(fd)
+    _set_timer_slack_1ns()
+    lateness: list[int] = []
+    first_ts: int | None = None
+    last_ts = 0
+    start_ns = clock_ns() + START_LEAD_NS
+    for i, msg in enumerate(frame_messages(selected, fd)):
+        ts_ns = round(msg.timestamp * 1e9)
+        if first_ts is None:
+            first_ts = ts_ns
+        last_ts = ts_ns
+        deadline = start_ns + (ts_ns - first_ts)
+        remaining = deadline - clock_ns()
+        if remaining > 0:
+            sleep(remaining * 1e-9)
+        now = clock_ns()
+        try:
+            bus.send(msg)
+        except can.CanError as exc:
+            raise DriveFault(
+                f"replay --to-bus: sending frame {i} (id 0x{msg.arbitration_id:X}) failed: {exc}"
+            ) from exc
+        lateness.append(now - deadline)
+        if progress is not None and i % 4096 == 0:
+            progress(i, total)
+    late = np.asarray(lateness, dtype=np.int64)
+    return PlaybackStats(
+        frames_sent=len(late),
+        skipped_error_frames=errors,
+        skipped_own_echoes=echoes,
+        duration_s=(last_ts - first_ts) * 1e-9 if first_ts is not None else 0.0,
+        late_frames=int(np.count_nonzero(late > late_threshold_us * 1e3)),
+        late_threshold_us=late_threshold_us,
+        lateness_us=distribution(late, 1e-3),
+    )

@@ -1,0 +1,248 @@
+"""``replay --verify`` and ``replay --design``: the controller re-run over a log (:mod:`rerun`).
+
+:func:`verify` re-runs the logged design with the logged DOB setting, the logged drive's
+quantizer and missing-feedback policy, and compares every logged field the controller produced
+bit for bit (float64 compared as bit patterns, so -0.0 != 0.0 and NaN == NaN of the same bits):
+``position`` (the estimator's input, which differs from the measurement only when feedback was
+missing), ``x_hat``, ``x_bar``, ``u_fb``, ``u_dist``, ``u_cmd_a``, ``u_applied_a``, ``dac_counts``
+and the saturation flag; with the config at hand, also ``x_ref`` against the reference generator.
+
+:func:`redesign` runs another design open loop on the same recorded measurements and references
+(same DOB setting, same drive quantizer) and compares what it would have commanded with what
+was sent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.analysis.loaded import LoadedLog
+from dob_hil.analysis.rerun import MissingPolicy, Rerun, rerun
+from dob_hil.config import Config, DriveConfig
+from dob_hil.control.step import Gains, compile_step
+from dob_hil.design import Design
+from dob_hil.errors import DesignError, DobHilError
+from dob_hil.link.native import DacQuantizer
+from dob_hil.log.schemas import FLAG_SATURATED
+
+MAX_REPORTED = 10
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    seq: int
+    field: str
+    logged: str
+    replayed: str
+
+
+@dataclass
+class VerifyResult:
+    samples: int
+    dob_enabled: bool
+    fields: list[str]
+    identical: bool
+    mismatched_samples: int
+    mismatches_by_field: dict[str, int]
+    first_mismatches: list[Mismatch]
+    first_mismatch_seq: int | None
+    resyncs: list[int]
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _require_design(log: LoadedLog) -> Design:
+    if log.design is None:
+        raise DobHilError(f"{log.path}: the log has no usable design.json attachment; cannot re-run it")
+    return log.design
+
+
+def logged_drive(log: LoadedLog, notes: list[str]) -> DriveConfig:
+    """The drive settings the run used: its config, else the run metadata's limit and LSB."""
+    if log.config is not None:
+        return log.config.drive
+    try:
+        drive = DriveConfig(
+            current_limit_A=float(log.run["current_limit_A"]), dac_lsb_A=float(log.run["dac_lsb_A"])
+        )
+    except (KeyError, ValueError) as exc:
+        raise DobHilError(
+            f"{log.path}: neither a config.toml attachment nor current_limit_A/dac_lsb_A in the run "
+            f"metadata ({exc}); the quantizer cannot be reproduced"
+        ) from None
+    notes.append("no config attachment: quantizer from the run metadata's current_limit_A and dac_lsb_A")
+    return drive
+
+
+def logged_missing_policy(log: LoadedLog, notes: list[str]) -> MissingPolicy:
+    if log.config is not None:
+        return MissingPolicy(log.config.run.missing_feedback_policy, log.config.run.max_missing_periods)
+    policy = log.run.get("missing_feedback_policy", "hold")
+    notes.append(f"no config attachment: missing-feedback policy {policy!r}, max_missing_periods 3 assumed")
+    return MissingPolicy(policy, 3)
+
+
+def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
+    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
+    step = compile_step(gains, log.dob_enabled)
+    return rerun(step, DacQuantizer(drive).quantize, log.data.samples, design.C, missing, log.data.events)
+
+
+def _bits(values: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    a = np.ascontiguousarray(values)
+    if a.dtype == np.float64:
+        return a.view(np.uint64)
+    return a.astype(np.int64)
+
+
+def _reference(log: LoadedLog, config: Config) -> npt.NDArray[np.float64] | None:
+    from dob_hil.control.reference import make_reference
+
+    n_states = log.data.layout.n_states
+    try:
+        ref = make_reference(config.reference, n_states, config.plant.period_s)
+    except DobHilError:
+        return None
+    seqs = log.data.samples["seq"].tolist()
+    return np.asarray([ref.at(k) for k in seqs], dtype=np.float64).reshape(len(seqs), n_states)
+
+
+def verify(log: LoadedLog, *, max_reported: int = MAX_REPORTED) -> VerifyResult:
+    """Re-run the logged controller and compare bit for bit (module docstring)."""
+    design = _require_design(log)
+    notes: list[str] = []
+    drive = logged_drive(log, notes)
+    missing = logged_missing_policy(log, notes)
+    s = log.data.samples
+    r = _rerun_with(log, design, drive, missing)
+    pairs: list[tuple[str, npt.NDArray[Any], npt.NDArray[Any]]] = [
+        ("position", s["position"], r.position),
+        ("x_hat", s["x_hat"], r.x_hat),
+        ("x_bar", s["x_bar"], r.x_bar),
+        ("u_fb", s["u_fb"], r.u_fb),
+        ("u_dist", s["u_dist"], r.u_dist),
+        ("u_cmd_a", s["u_cmd_a"], r.u_cmd),
+        ("u_applied_a", s["u_applied_a"], r.u_applied),
+        ("dac_counts", s["dac_counts"], r.dac_counts),
+        ("saturated", (s["flags"] & FLAG_SATURATED) != 0, r.saturated),
+    ]
+    if log.config is not None:
+        x_ref = _reference(log, log.config)
+        if x_ref is None:
+            notes.append("the reference could not be rebuilt from the config; x_ref not checked")
+        else:
+            pairs.append(("x_ref", s["x_ref"], x_ref))
+    n = len(s)
+    any_bad = np.zeros(n, dtype=bool)
+    by_field: dict[str, int] = {}
+    first: list[Mismatch] = []
+    seqs = s["seq"]
+    for name, logged, replayed in pairs:
+        lb, rb = _bits(logged), _bits(replayed)
+        bad = (lb != rb).reshape(n, -1).any(axis=1)
+        count = int(np.count_nonzero(bad))
+        by_field[name] = count
+        any_bad |= bad
+        for i in np.flatnonzero(bad)[:max_reported].tolist():
+            first.append(
+                Mismatch(
+                    int(seqs[i]),
+                    name,
+                    repr(np.asarray(logged[i]).tolist()),
+                    repr(np.asarray(replayed[i]).tolist()),
+                )
+            )
+    first.sort(key=lambda mm: mm.seq)
+    bad_rows = np.flatnonzero(any_bad)
+    if r.resyncs:
+        notes.append(f"{len(r.resyncs)} unexplained sequence gap(s): re-started from the logged x_bar there")
+    return VerifyResult(
+        samples=n,
+        dob_enabled=log.dob_enabled,
+        fields=[name for name, _, _ in pairs],
+        identical=len(bad_rows) == 0 and n > 0,
+        mismatched_samples=len(bad_rows),
+        mismatches_by_field=by_field,
+        first_mismatches=first[:max_reported],
+        first_mismatch_seq=int(seqs[bad_rows[0]]) if len(bad_rows) else None,
+        resyncs=r.resyncs,
+        notes=notes,
+    )
+
+
+@dataclass
+class RedesignResult:
+    design_name: str
+    samples: int
+    dob_enabled: bool
+    u_applied_diff_rms_A: float
+    u_applied_diff_max_A: float
+    u_cmd_diff_rms_A: float
+    u_cmd_diff_max_A: float
+    sent_rms_A: float
+    other_rms_A: float
+    other_saturated_fraction: float
+    notes: list[str] = field(default_factory=list)
+    rerun: Rerun | None = None  # the other design's commands (not in to_dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.pop("rerun")
+        return d
+
+
+def check_compatible(log: LoadedLog, other: Design) -> None:
+    """DesignError unless ``other`` has the log's period and dimensions."""
+    layout = log.data.layout
+    if other.period_ns != log.period_ns:
+        raise DesignError(
+            f"design {other.name!r}: period {other.period_ns} ns differs from the log's {log.period_ns} ns"
+        )
+    have = (other.n_states, other.n_inputs, other.n_outputs)
+    want = (layout.n_states, layout.n_inputs, layout.n_outputs)
+    if have != want:
+        raise DesignError(
+            f"design {other.name!r}: states/inputs/outputs {have} differ from the log's {want} "
+            "(an input delay changes the state count)"
+        )
+
+
+def redesign(log: LoadedLog, other: Design) -> RedesignResult:
+    """What ``other`` would have commanded on the log's measurements (module docstring)."""
+    check_compatible(log, other)
+    notes: list[str] = []
+    drive = logged_drive(log, notes)
+    missing = logged_missing_policy(log, notes)
+    r = _rerun_with(log, other, drive, missing)
+    s = log.data.samples
+    sent = np.asarray(s["u_applied_a"], dtype=np.float64)
+    cmd = np.asarray(s["u_cmd_a"], dtype=np.float64)
+    n = len(s)
+
+    def rms(x: npt.NDArray[np.float64]) -> float:
+        return float(np.sqrt(np.mean(np.square(x)))) if x.size else 0.0
+
+    def amax(x: npt.NDArray[np.float64]) -> float:
+        return float(np.abs(x).max()) if x.size else 0.0
+
+    notes.append("open loop: the plant's response to the other commands is not modelled")
+    return RedesignResult(
+        design_name=other.name,
+        samples=n,
+        dob_enabled=log.dob_enabled,
+        u_applied_diff_rms_A=rms(r.u_applied - sent),
+        u_applied_diff_max_A=amax(r.u_applied - sent),
+        u_cmd_diff_rms_A=rms(r.u_cmd - cmd),
+        u_cmd_diff_max_A=amax(r.u_cmd - cmd),
+        sent_rms_A=rms(sent),
+        other_rms_A=rms(r.u_applied),
+        other_saturated_fraction=float(np.mean(r.saturated)) if n else 0.0,
+        notes=notes,
+        rerun=r,
+    )

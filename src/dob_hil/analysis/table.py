@@ -1,0 +1,108 @@
+"""The metrics of one or more logs as a text table: one row per metric, one column per log."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+Row = tuple[str, Callable[[dict[str, Any]], str]]
+NONE = "-"
+
+
+def _num(value: Any, fmt: str = ".4g", scale: float = 1.0) -> str:
+    if value is None:
+        return NONE
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    return format(value * scale, fmt)
+
+
+def _dist(key: str, part: str) -> Callable[[dict[str, Any]], str]:
+    return lambda m: _num((m.get(key) or {}).get(part), ".1f")
+
+
+def _bus(part: str) -> Callable[[dict[str, Any]], str]:
+    def get(m: dict[str, Any]) -> str:
+        load = m.get("bus_load")
+        if load is None:
+            return NONE
+        if part in ("worst_case", "nominal"):
+            return f"{100.0 * load[part]:.1f} %"
+        return _num(load[part], ".3f")
+
+    return get
+
+
+def _state_error(i: int) -> Callable[[dict[str, Any]], str]:
+    def get(m: dict[str, Any]) -> str:
+        errors = m["estimation_error_rms"]
+        return _num(errors[i]) if errors and i < len(errors) else NONE
+
+    return get
+
+
+def _percent(key: str) -> Callable[[dict[str, Any]], str]:
+    return lambda m: NONE if m[key] is None else f"{100.0 * m[key]:.2f} %"
+
+
+def _rows(metrics: list[dict[str, Any]]) -> list[Row]:
+    rows: list[Row] = [
+        ("DOB", lambda m: "on" if m["dob_enabled"] else "off"),
+        ("mode", lambda m: str(m["mode"])),
+        ("window from [s]", lambda m: _num(m["window_start_s"], ".4f")),
+        ("samples", lambda m: _num(m["samples"])),
+        ("duration [s]", lambda m: _num(m["duration_s"], ".4f")),
+        ("tracking error rms", lambda m: _num(m["tracking_error_rms"])),
+        ("tracking error max", lambda m: _num(m["tracking_error_max"])),
+        ("  against", lambda m: str(m["tracking_error_source"])),
+        ("disturbance w rms [A]", lambda m: _num(m["disturbance_rms"])),
+        ("w + u_dist rms [A]", lambda m: _num(m["disturbance_estimate_error_rms"])),
+        ("estimate gain -u_dist/w", lambda m: _num(m["disturbance_estimate_gain"], ".3f")),
+    ]
+    n_states = max((len(m["estimation_error_rms"] or []) for m in metrics), default=0)
+    for i in range(n_states):
+        rows.append((f"state {i} error rms", _state_error(i)))
+    rows += [
+        ("saturated", _percent("saturated_fraction")),
+        ("overruns", lambda m: _num(m["overruns"])),
+        ("feedback missing", lambda m: _num(m["feedback_missing"])),
+        ("skipped samples", lambda m: _num(m["skipped_samples"])),
+        ("dropped samples", lambda m: _num(m["dropped_samples"])),
+        ("log dropped records", lambda m: _num(m["log_dropped_records"])),
+    ]
+    for key, title in (
+        ("latency_us", "latency"),
+        ("period_jitter_us", "period jitter"),
+        ("compute_us", "step"),
+    ):
+        for part in ("p50", "p99", "max"):
+            rows.append((f"{title} {part} [us]", _dist(key, part)))
+    rows += [
+        ("bus load worst case", _bus("worst_case")),
+        ("bus load nominal", _bus("nominal")),
+        ("frames per period", _bus("frames_per_period")),
+        ("truth samples", lambda m: _num(m["truth_samples"])),
+    ]
+    return rows
+
+
+def format_table(metrics: list[dict[str, Any]], labels: list[str]) -> str:
+    """The table, then the notes and warnings of each log (prefixed with its column title)."""
+    rows = _rows(metrics)
+    cells = [[get(m) for m in metrics] for _, get in rows]
+    first = max(len(name) for name, _ in rows)
+    widths = [max(len(label), *(len(row[j]) for row in cells)) for j, label in enumerate(labels)]
+    lines = ["  ".join([" " * first, *(label.rjust(w) for label, w in zip(labels, widths, strict=True))])]
+    lines.append("  ".join(["-" * first, *("-" * w for w in widths)]))
+    for (name, _), row in zip(rows, cells, strict=True):
+        lines.append("  ".join([name.ljust(first), *(c.rjust(w) for c, w in zip(row, widths, strict=True))]))
+    notes: dict[str, list[str]] = {}
+    for label, m in zip(labels, metrics, strict=True):
+        for note in m["notes"]:
+            notes.setdefault(note, []).append(label)
+    for note, which in notes.items():
+        who = "all logs" if len(which) == len(labels) and len(labels) > 1 else ", ".join(which)
+        lines.append(f"note ({who}): {note}")
+    return "\n".join(lines)

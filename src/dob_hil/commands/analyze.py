@@ -1,0 +1,98 @@
+"""``dob-hil analyze LOG.mcap [LOG2.mcap ...]``: metrics table (or JSON) and PNG plots.
+
+Text output: one table, one column per log, then notes; warnings (what a damaged log lost, what
+a log lacks) go to stderr. ``--json`` prints only JSON on stdout: a list with one object per log,
+in the order given, with the keys documented in :mod:`dob_hil.analysis.metrics` plus ``plots``
+(the PNG paths written, the same list for every log; empty with ``--no-plots``). Numbers that
+the log cannot give are ``null``. Plots go to ``--plots DIR``, by default to a folder beside the
+first log: ``<stem>-plots/`` (one log) or ``<stem1>-vs-<stem2>-plots/`` (several, overlaid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from dob_hil.errors import ConfigError
+
+
+def default_plots_dir(paths: list[Path]) -> Path:
+    first = paths[0]
+    if len(paths) == 1:
+        return first.with_name(f"{first.stem}-plots")
+    if len(paths) == 2:
+        return first.with_name(f"{first.stem}-vs-{paths[1].stem}-plots")
+    return first.with_name(f"{first.stem}-and-{len(paths) - 1}-more-plots")
+
+
+def _clean(value: Any) -> Any:
+    """NaN/inf -> None, recursively, so the JSON is strict."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    return value
+
+
+def analyze_logs(
+    paths: list[Path],
+    *,
+    from_s: float,
+    plots_dir: Path | None,
+    as_json: bool,
+    plots: bool = True,
+) -> list[dict[str, Any]]:
+    """Read each log, compute its metrics over ``from_s`` .. end, print them (table or JSON on
+    stdout, warnings on stderr), write the overlaid plots (unless ``plots`` is False) into
+    ``plots_dir`` (None: :func:`default_plots_dir`) and return the metrics, one dict per log.
+    Raises LogReadError for a file that is no log at all, ConfigError for a bad ``from_s``."""
+    from dob_hil.analysis.loaded import load_log
+    from dob_hil.analysis.metrics import compute_metrics
+    from dob_hil.analysis.signals import derive_signals
+    from dob_hil.analysis.table import format_table
+
+    if not paths:
+        raise ConfigError("logs", "give at least one MCAP log")
+    if not (math.isfinite(from_s) and from_s >= 0.0):
+        raise ConfigError("--from", f"must be a number of seconds >= 0, got {from_s}")
+    paths = [Path(p) for p in paths]
+    logs = [load_log(p) for p in paths]
+    signals = [derive_signals(log) for log in logs]
+    results = [_clean(compute_metrics(log, from_s, sig)) for log, sig in zip(logs, signals, strict=True)]
+    for log, metrics in zip(logs, results, strict=True):
+        for warning in metrics["warnings"]:
+            print(f"dob-hil analyze: warning: {log.path}: {warning}", file=sys.stderr)
+    written: list[Path] = []
+    if plots:
+        from dob_hil.analysis.plots import PlotInput, write_plots
+
+        out_dir = plots_dir if plots_dir is not None else default_plots_dir(paths)
+        written = write_plots(
+            [PlotInput(log, sig) for log, sig in zip(logs, signals, strict=True)], out_dir, from_s=from_s
+        )
+    for metrics in results:
+        metrics["plots"] = [str(p) for p in written]
+    if as_json:
+        print(json.dumps(results, indent=1, allow_nan=False))
+    else:
+        print(format_table(results, [log.label for log in logs]))
+        if written:
+            print(f"plots: {len(written)} PNG files in {written[0].parent}")
+    return results
+
+
+def main(args: argparse.Namespace) -> int:
+    analyze_logs(
+        [Path(p) for p in args.logs],
+        from_s=args.from_s,
+        plots_dir=Path(args.plots) if args.plots else None,
+        as_json=args.json,
+        plots=not args.no_plots,
+    )
+    return 0

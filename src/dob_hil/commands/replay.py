@@ -1,0 +1,143 @@
+"""``dob-hil replay LOG.mcap --verify | --design OTHER | --to-bus [-i/-c/-b] [--json]``.
+
+* ``--verify``: re-run the logged controller over the logged measurements and check every
+  command and estimate bit for bit (:func:`dob_hil.analysis.replay.verify`). Exit 0 if identical,
+  1 if not (the first mismatches and a count per field are printed).
+* ``--design OTHER`` (a config path or a scenario name): what that design would have commanded
+  on the same measurements, open loop, against what was sent; writes
+  ``<log stem>-replay-<design name>.png`` beside the log.
+* ``--to-bus``: play the recorded frames onto a python-can bus with their original timing
+  (:mod:`dob_hil.analysis.playback`); the bus from -i/-c/-b or python-can's configuration.
+
+``--json`` prints one JSON object on stdout instead of the text report. Exit 2 (one line on
+stderr) for a log or design that cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from dob_hil.analysis.loaded import LoadedLog, load_log
+
+
+def _warn(log: LoadedLog) -> None:
+    for warning in log.warnings:
+        print(f"dob-hil replay: warning: {log.path}: {warning}", file=sys.stderr)
+
+
+def _verify(log: LoadedLog, as_json: bool) -> int:
+    from dob_hil.analysis.replay import verify
+
+    result = verify(log)
+    if as_json:
+        print(json.dumps({"mode": "verify", "log": str(log.path), **result.to_dict()}, indent=1))
+    else:
+        verdict = "identical" if result.identical else "DIFFERENT"
+        print(
+            f"replay --verify {log.path}: {result.samples} samples, "
+            f"DOB {'on' if result.dob_enabled else 'off'}: {verdict}"
+        )
+        print(f"  fields compared bit for bit: {', '.join(result.fields)}")
+        if not result.identical:
+            print(f"  {result.mismatched_samples} sample(s) differ, first at seq {result.first_mismatch_seq}")
+            counts = ", ".join(f"{k} {v}" for k, v in result.mismatches_by_field.items() if v)
+            print(f"  per field: {counts}")
+            for mm in result.first_mismatches:
+                print(f"  seq {mm.seq:>8} {mm.field:<12} logged {mm.logged}  replayed {mm.replayed}")
+        for note in result.notes:
+            print(f"  note: {note}")
+    return 0 if result.identical else 1
+
+
+def _design(log: LoadedLog, other: str, as_json: bool) -> int:
+    from dob_hil.analysis.replay import redesign
+    from dob_hil.analysis.replay_plot import plot_redesign
+    from dob_hil.config import load_config
+    from dob_hil.design import build_design
+    from dob_hil.scenarios import resolve_config_path
+
+    config = load_config(resolve_config_path(other))
+    design = build_design(config, dob_enabled=log.dob_enabled)
+    result = redesign(log, design)
+    plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")
+    assert result.rerun is not None
+    plot_redesign(log, result.rerun, design.name, plot_path)
+    out: dict[str, Any] = {
+        "mode": "design",
+        "log": str(log.path),
+        "design": other,
+        **result.to_dict(),
+        "plot": str(plot_path),
+    }
+    if as_json:
+        print(json.dumps(out, indent=1))
+    else:
+        print(
+            f"replay --design {other} on {log.path} ({result.samples} samples, "
+            f"DOB {'on' if result.dob_enabled else 'off'}), open loop on the recorded measurements:"
+        )
+        print(
+            f"  applied current: sent rms {result.sent_rms_A:.5g} A, "
+            f"{design.name} rms {result.other_rms_A:.5g} A"
+        )
+        print(
+            f"  difference (other - sent): applied rms {result.u_applied_diff_rms_A:.5g} A, "
+            f"max {result.u_applied_diff_max_A:.5g} A; commanded rms {result.u_cmd_diff_rms_A:.5g} A, "
+            f"max {result.u_cmd_diff_max_A:.5g} A"
+        )
+        print(f"  {design.name} saturated {100.0 * result.other_saturated_fraction:.2f} % of samples")
+        for note in result.notes:
+            print(f"  note: {note}")
+        print(f"  plot: {plot_path}")
+    return 0
+
+
+def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
+    from dob_hil.analysis.playback import play_frames
+    from dob_hil.link.bus import open_bus
+
+    frames, fd = log.data.frames, log.data.fd_frames
+    if len(frames) + len(fd) == 0:
+        print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
+        return 0
+    bus = open_bus(args.interface, args.channel, args.bitrate)
+    try:
+        print(
+            f"dob-hil replay: sending {len(frames) + len(fd)} recorded frames onto "
+            f"{bus.channel_info} with their original timing",
+            file=sys.stderr,
+        )
+        stats = play_frames(bus, frames, fd)
+    finally:
+        bus.shutdown()
+    d = stats.to_dict()
+    if args.json:
+        print(json.dumps({"mode": "to-bus", "log": str(log.path), **d}, indent=1))
+    else:
+        lat = stats.lateness_us or {}
+        print(
+            f"replay --to-bus {log.path}: {stats.frames_sent} frames over {stats.duration_s:.3f} s; "
+            f"lateness p50 {lat.get('p50', 0):.1f} us, p99 {lat.get('p99', 0):.1f} us, "
+            f"max {lat.get('max', 0):.1f} us; {stats.late_frames} more than "
+            f"{stats.late_threshold_us:g} us late"
+        )
+        if stats.skipped_error_frames or stats.skipped_own_echoes:
+            print(
+                f"  skipped: {stats.skipped_error_frames} error frames, "
+                f"{stats.skipped_own_echoes} received copies of own frames"
+            )
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    log = load_log(Path(args.log))
+    _warn(log)
+    if args.verify:
+        return _verify(log, args.json)
+    if args.design:
+        return _design(log, args.design, args.json)
+    return _to_bus(log, args)
