@@ -93,6 +93,13 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         g.add_argument("--design", help="another config/design: what it would have commanded")
         g.add_argument("--to-bus", action="store_true", help="play the raw frames onto a bus")
         add_bus_arguments(p)
+        p.add_argument(
+            "--direction",
+            choices=("both", "rx", "tx"),
+            default="both",
+            help="--to-bus: which recorded frames to send: rx (the drive's, to stand in for it), "
+            "tx (our commands: a live drive on that bus would act on them!), or both (default)",
+        )
         p.add_argument("--json", action="store_true", help="print the result as JSON")
     elif name == "export":
         p.add_argument("log", help="MCAP log")

@@ -81,6 +81,24 @@ def test_replay_to_bus_command(
     assert out["frames_sent"] == len(expected) and out["skipped_error_frames"] == 0
 
 
+def test_replay_to_bus_rx_only_stands_in_for_the_drive(
+    runs: dict[tuple[str, bool], Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--direction rx sends only what the drive sent: no recorded command reaches a live bus."""
+    path = runs[("paper-step", True)]
+    data = read_log(path)
+    n_rx = int(np.count_nonzero(counted_frames(data.frames) & (data.frames["direction"] == 0)))
+    channel = f"dob-hil-playback-{next(_channels)}"
+    receiver = Receiver(channel, n_rx)
+    receiver.start()
+    args = ["replay", str(path), "--to-bus", "-i", "virtual", "-c", channel, "--direction", "rx", "--json"]
+    assert main(args) == 0
+    receiver.join(15.0)
+    assert len(receiver.got) == n_rx
+    assert all((m.arbitration_id & 0x780) in (0x080, 0x180, 0x700) for m in receiver.got)
+    assert json.loads(capsys.readouterr().out)["frames_sent"] == n_rx
+
+
 class FakeClock:
     """A clock that only moves when slept on, plus a fixed cost per send."""
 

@@ -101,6 +101,9 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
     from dob_hil.link.bus import open_bus
 
     frames, fd = log.data.frames, log.data.fd_frames
+    if args.direction != "both":  # rx: what the drive sent (a drive stand-in); tx: what we sent
+        want = 0 if args.direction == "rx" else 1
+        frames, fd = frames[frames["direction"] == want], fd[fd["direction"] == want]
     if len(frames) + len(fd) == 0:
         print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
