@@ -17,8 +17,8 @@ import uuid
 from pathlib import Path
 
 import can
-
 from _common import median, parser, report
+
 from dob_hil.config import load_config
 from dob_hil.loop.session import RunOptions, run_session
 from dob_hil.scenarios import scenario_path

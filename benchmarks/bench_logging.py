@@ -1,0 +1,274 @@
+"""Logging cost on the control thread, records dropped at 3.33 kHz, and bytes per sample on disk.
+
+1. Per-call cost, as the loop calls the log each period: ``frame(feedback, rx)``,
+   ``frame(command, tx)``, ``sample(...)``, ``truth(...)`` (the embedded drive's ground truth)
+   and ``flush()``; each call timed with ``perf_counter_ns``, in a loop paced at 3.33 kHz
+   (sleep, then spin the last 100 us to each 300 us deadline) and unpaced (as fast as the
+   writer process takes records). ``period`` is the five calls together.
+2. ``--minutes [N]`` (default 10 when given without N; smoke 0.05): a paced 3.33 kHz writer for
+   N minutes; records dropped (``LogWriter.stats``) and samples read back. Zero expected.
+3. Log size: bytes on disk per sample of the sample channel, all overhead included, two ways:
+   a log holding samples only (``dob_hil.log.bench.measure_size``: file size / samples), and
+   a full log (sample + 2 frames + truth per period, ``write_synthetic``) with every byte
+   apportioned: each chunk's bytes by the channels' share of its uncompressed message bytes,
+   each channel's own message-index records, and the rest of the file (header, schemas,
+   metadata, summary, footer) by the channels' share of all message bytes.
+
+Goals: per-sample cost p99 <= 5 us (the whole period's calls, paced); zero records dropped in
+10 minutes at 3.33 kHz; <= 200 bytes per sample on disk.
+
+    .venv/bin/python benchmarks/bench_logging.py [--smoke] [--json] [--minutes [N]]
+"""
+
+from __future__ import annotations
+
+import math
+import mmap
+import tempfile
+import time
+from array import array
+from pathlib import Path
+from typing import Any
+
+import can
+import zstandard
+from _common import parser, percentiles, report
+
+from dob_hil.log import LogWriter, read_log
+from dob_hil.log.bench import PAPER_LAYOUT, measure_size, write_synthetic
+from dob_hil.log.mcap_scan import scan, walk_chunk
+from dob_hil.log.schemas import FLAG_DOB_ON, TOPIC_SAMPLE
+
+PERIOD_NS = 300_000
+SPIN_NS = 100_000
+CALLS = ("frame_rx", "frame_tx", "sample", "truth", "flush", "period")
+P99_GOAL_US = 5.0
+SIZE_GOAL_B = 200.0
+
+
+class LoopRecords:
+    """What the loop hands the log in period ``k`` (values vary, shapes as in the paper design)."""
+
+    def __init__(self) -> None:
+        self.fb_data = bytearray(6)
+        self.cmd_data = bytearray(3)
+
+    def messages(self, k: int) -> tuple[can.Message, can.Message]:
+        now = time.time()
+        self.fb_data[0:4] = (k * 7 & 0xFFFFFFFF).to_bytes(4, "little")
+        self.fb_data[4] = k & 0xFF
+        self.cmd_data[0:2] = (k * 3 & 0xFFFF).to_bytes(2, "little")
+        self.cmd_data[2] = 0x80 | (k & 0x7F)
+        fb = can.Message(timestamp=now, arbitration_id=0x181, is_extended_id=False, data=bytes(self.fb_data))
+        cmd = can.Message(
+            timestamp=now, arbitration_id=0x201, is_extended_id=False, data=bytes(self.cmd_data)
+        )
+        return fb, cmd
+
+
+def run_periods(
+    log: LogWriter,
+    n: int,
+    *,
+    paced: bool,
+    times: dict[str, array[int]] | None,
+    first_k: int = 0,
+) -> None:
+    """``n`` periods of the loop's log calls; per-call times appended to ``times`` (if given)."""
+    clock = time.perf_counter_ns
+    mono = time.monotonic_ns
+    sample, frame, truth, flush = log.sample, log.frame, log.truth, log.flush
+    recs = LoopRecords()
+    a = [times[c] for c in CALLS] if times is not None else None
+    deadline = mono() + PERIOD_NS
+    for k in range(first_k, first_k + n):
+        fb, cmd = recs.messages(k)
+        x = math.sin(k * 1e-3)
+        u = (0.3 * x,)
+        xs = (x, 0.5 * x)
+        t_ns = k * PERIOD_NS
+        if paced:
+            while (left := deadline - mono()) > SPIN_NS:
+                time.sleep((left - SPIN_NS) * 1e-9)
+            while mono() < deadline:
+                pass
+            deadline += PERIOD_NS
+        t0 = clock()
+        frame(fb, True)
+        t1 = clock()
+        frame(cmd, False)
+        t2 = clock()
+        sample(
+            t_ns, t_ns + 20_000, t_ns + 40_000, 20_000, (k,), (x,), xs, xs, xs, u, u, u, u,
+            k, 1500, (k & 0x3FF,), k & 0xFF, FLAG_DOB_ON,
+        )  # fmt: skip
+        t3 = clock()
+        truth(t_ns, xs, u, u, k, 1)
+        t4 = clock()
+        flush()
+        t5 = clock()
+        if a is not None:
+            a[0].append(t1 - t0)
+            a[1].append(t2 - t1)
+            a[2].append(t3 - t2)
+            a[3].append(t4 - t3)
+            a[4].append(t5 - t4)
+            a[5].append(t5 - t0)
+        if not paced and k % 1000 == 0:  # keep up with the writer process (outside the timing)
+            while log.stats.backlog_bytes > 4 << 20:
+                time.sleep(0.002)
+                log.flush(force=True)
+            deadline = mono() + PERIOD_NS
+
+
+def timer_cost_ns(n: int = 100_000) -> float:
+    clock = time.perf_counter_ns
+    best = []
+    for _ in range(5):
+        t0 = clock()
+        for _ in range(n):
+            clock()
+        best.append((clock() - t0) / n)
+    return min(best)
+
+
+def per_call(tmp: Path, n: int, paced: bool) -> dict[str, Any]:
+    times = {c: array("q") for c in CALLS}
+    with LogWriter(tmp / f"calls-{'paced' if paced else 'unpaced'}.mcap", PAPER_LAYOUT) as log:
+        run_periods(log, n, paced=paced, times=times)
+        dropped = log.stats.dropped_records
+    out: dict[str, Any] = {"periods": n, "dropped_records": dropped}
+    for c in CALLS:
+        p = percentiles([v / 1000 for v in times[c]], (50, 99, 99.9))
+        out[f"{c}_us"] = {k: round(v, 3) for k, v in p.items() if k != "min"}
+    return out
+
+
+def soak(tmp: Path, minutes: float) -> dict[str, Any]:
+    """A paced 3.33 kHz writer for ``minutes``; dropped records counted, samples read back."""
+    n = round(minutes * 60e9 / PERIOD_NS)
+    path = tmp / "soak.mcap"
+    times = {c: array("q") for c in CALLS}
+    t0 = time.monotonic()
+    with LogWriter(path, PAPER_LAYOUT) as log:
+        run_periods(log, n, paced=True, times=times)
+        stats_before_close = log.stats
+    wall_s = time.monotonic() - t0
+    stats = log.stats
+    data = read_log(path)
+    size = path.stat().st_size
+    path.unlink()
+    period = percentiles([v / 1000 for v in times["period"]], (50, 99, 99.9))
+    return {
+        "minutes": minutes,
+        "periods": n,
+        "wall_s": round(wall_s, 1),
+        "dropped_records": stats.dropped_records,
+        "backlog_high_water_bytes": stats_before_close.backlog_high_water_bytes,
+        "records_written": sum(v for k, v in (stats.written_records or {}).items() if k.endswith("_written")),
+        "records_enqueued": stats.enqueued_records,
+        "samples_read_back": len(data.samples),
+        "log_complete": data.complete,
+        "file_MB": round(size / 1e6, 1),
+        "period_us": {k: round(v, 3) for k, v in period.items() if k != "min"},
+    }
+
+
+def apportioned_bytes(path: Path, topic: str = TOPIC_SAMPLE) -> dict[str, float]:
+    """Bytes on disk per message of ``topic``, every byte of the file apportioned (see module doc)."""
+    dctx = zstandard.ZstdDecompressor()
+    with path.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        fmap = scan(mm, str(path))
+        size = fmap.size
+        chunk_share: dict[int, float] = {}
+        index_bytes: dict[int, int] = {}
+        msg_bytes: dict[int, int] = {}
+        count: dict[int, int] = {}
+        chunk_total = 0
+        for chunk in fmap.chunks:
+            raw = mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
+            if chunk.compression == "zstd":
+                records = dctx.decompress(raw, max_output_size=chunk.uncompressed_size)
+            elif chunk.compression == "":
+                records = raw
+            else:
+                raise ValueError(f"{path}: chunk compression {chunk.compression!r} is not measured here")
+            walk = walk_chunk(records)
+            in_chunk: dict[int, int] = {}
+            for ch, length in zip(walk.channels, walk.lengths, strict=True):
+                in_chunk[ch] = in_chunk.get(ch, 0) + 9 + length
+                count[ch] = count.get(ch, 0) + 1
+            total = sum(in_chunk.values())
+            record = chunk.end - chunk.offset
+            chunk_total += record + (chunk.index_end - chunk.end)
+            for ch, b in in_chunk.items():
+                chunk_share[ch] = chunk_share.get(ch, 0.0) + record * b / total
+                msg_bytes[ch] = msg_bytes.get(ch, 0) + b
+            for ch, (_pairs, n_entries) in chunk.indexes.items():
+                index_bytes[ch] = index_bytes.get(ch, 0) + 1 + 8 + 2 + 4 + 16 * n_entries
+        channel = next(c.id for c in fmap.channels.values() if c.topic == topic)
+        rest = size - chunk_total
+        share = msg_bytes[channel] / sum(msg_bytes.values())
+        n = count[channel]
+        return {
+            "messages": n,
+            "total_B": (chunk_share[channel] + index_bytes.get(channel, 0) + rest * share) / n,
+            "chunk_B": chunk_share[channel] / n,
+            "index_B": index_bytes.get(channel, 0) / n,
+            "rest_of_file_B": rest * share / n,
+            "uncompressed_record_B": msg_bytes[channel] / n,
+        }
+
+
+def log_size(tmp: Path, n: int) -> dict[str, Any]:
+    out: dict[str, Any] = {"samples": n}
+    out.update({k: round(v, 1) for k, v in measure_size(tmp, n).items()})
+    path = tmp / "full.mcap"
+    write_synthetic(path, n)
+    out["full_log_sample_channel"] = {k: round(v, 1) for k, v in apportioned_bytes(path).items()}
+    path.unlink()
+    return out
+
+
+def main() -> None:
+    p = parser(__doc__ or "")
+    p.add_argument(
+        "--minutes", type=float, nargs="?", const=10.0, help="also run the paced drop soak (default 10 min)"
+    )
+    p.add_argument("--paced-s", type=float, help="seconds of the paced per-call run (default 20, smoke 0.5)")
+    p.add_argument("--size-samples", type=int, help="samples of the size logs (default 200000, smoke 5000)")
+    args = p.parse_args()
+    paced_n = round((args.paced_s or (0.5 if args.smoke else 20.0)) * 1e9 / PERIOD_NS)
+    unpaced_n = 5_000 if args.smoke else 200_000
+    size_n = args.size_samples or (5_000 if args.smoke else 200_000)
+    minutes = args.minutes if args.minutes is not None else (0.05 if args.smoke else None)
+    result: dict[str, Any] = {"timer_cost_ns": round(timer_cost_ns(), 1)}
+    with tempfile.TemporaryDirectory(prefix="bench-log-") as tmp_name:
+        tmp = Path(tmp_name)
+        paced = per_call(tmp, paced_n, paced=True)
+        unpaced = per_call(tmp, unpaced_n, paced=False)
+        size = log_size(tmp, size_n)
+        soaked = soak(tmp, minutes) if minutes is not None else None
+    for name, calls in (("paced 3.33 kHz", paced), ("unpaced", unpaced)):
+        result[name] = {k: v for k, v in calls.items() if not k.endswith("_us")}
+        result.update({f"{name} {k}": v for k, v in calls.items() if k.endswith("_us")})
+    full = size.pop("full_log_sample_channel")
+    result["size_per_sample_B"] = size
+    result["size_apportioned_in_full_log_B"] = full
+    if soaked is not None:
+        result["soak period_us"] = soaked.pop("period_us")
+        result["soak"] = soaked
+    goals: dict[str, bool | None] = {
+        "period_p99_le_5us_paced": paced["period_us"]["p99"] <= P99_GOAL_US,
+        "sample_p99_le_5us_paced": paced["sample_us"]["p99"] <= P99_GOAL_US,
+        "size_le_200B_samples_only": size["samples_only_zstd_B"] <= SIZE_GOAL_B,
+        "size_le_200B_apportioned": full["total_B"] <= SIZE_GOAL_B,
+        "zero_dropped_in_soak": None if soaked is None else soaked["dropped_records"] == 0,
+    }
+    result["goals_met"] = goals
+    result["goal"] = "p99 <= 5 us per sample; 0 dropped in 10 min at 3.33 kHz; <= 200 B/sample on disk"
+    report("logging: control-thread cost, drops at 3.33 kHz, bytes per sample", result, args.json)
+
+
+if __name__ == "__main__":
+    main()
