@@ -27,6 +27,8 @@ Behaviour (the firmware's contract):
   status FAULT|WATCHDOG until CLEAR_FAULT.
 * A non-finite plant position (a diverging plant) faults the drive with ``ENCODER``.
 * A FAULT frame is sent only when the drive enters FAULT, followed by a HEARTBEAT.
+* Injected faults (``[sim.faults]``, :mod:`firmware_sim.faults`): a FAULT at period N, silence
+  from period N (:attr:`DriveCore.silent`: the clocks send nothing), an encoder jump at period N.
 * FEEDBACK status: ENABLED, SATURATED (the last applied command was clamped), FAULT, WATCHDOG
   (the fault is the watchdog's). The sequence counts samples mod 256, lost ones included.
 """
@@ -61,6 +63,7 @@ from firmware_sim.actuator import CurrentPath
 from firmware_sim.dac import Dac
 from firmware_sim.disturbance import Disturbance
 from firmware_sim.encoder import Encoder
+from firmware_sim.faults import DriveFaults
 from firmware_sim.plant import PlantModel, check_single_axis
 from firmware_sim.state_machine import DriveStateMachine
 from firmware_sim.truth import GroundTruth
@@ -100,6 +103,7 @@ class DriveStats:
     saturations: int = 0
     overruns: int = 0  # real time: sample instants skipped because the timer fell behind
     send_failures: int = 0
+    frames_suppressed: int = 0  # not sent because the drive is silent ([sim.faults] silent_at_s)
 
 
 class DriveCore:
@@ -129,6 +133,8 @@ class DriveCore:
         self._last_accepted = -1  # sample number answered by the last valid command
         self._next_heartbeat_ns = HEARTBEAT_PERIOD_NS
         self._out: list[OutgoingFrame] = []
+        self.faults = DriveFaults.from_config(config)  # injected faults ([sim.faults]); None: none
+        self.silent = False  # set by an injected fault: the clocks send nothing
 
     # --- state ---------------------------------------------------------------------------------
     @property
@@ -202,6 +208,8 @@ class DriveCore:
         elif after is DriveState.ENABLED and before is not DriveState.ENABLED:
             self.watchdog.reset()
             self.saturated = False
+            if self.faults is not None:
+                self.faults.on_enabled(self.time_ns // self.period_ns)
         self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(after))))
 
     def _bad_frame(self, arbitration_id: int, t_ns: int) -> FrameResult:
@@ -245,6 +253,8 @@ class DriveCore:
 
     def period_boundary(self, commanded: bool) -> None:
         """Close one period at :attr:`time_ns`: watchdog (while ENABLED) and the 10 Hz heartbeat."""
+        if self.faults is not None:
+            self.faults.on_period(self, self.time_ns // self.period_ns)
         if self.machine.state is DriveState.ENABLED and self.watchdog.period_elapsed(commanded):
             self.fault(FaultCode.WATCHDOG, self.watchdog.missed, self.time_ns)
         if self.time_ns >= self._next_heartbeat_ns:
@@ -260,6 +270,8 @@ class DriveCore:
         except ValueError:
             self.fault(FaultCode.ENCODER, 0, self.time_ns)
             state, counts = self.machine.state, 0
+        if self.faults is not None:
+            counts = self.faults.counts(self.time_ns // self.period_ns, counts)
         if state is DriveState.ENABLED:
             status = _ST_ENABLED_SATURATED if self.saturated else _ST_ENABLED
         elif state is DriveState.FAULT:

@@ -90,8 +90,7 @@ class LockstepClock:
         payload, truth = self.core.sample()
         if self.impairment.lost():
             self.core.stats.feedback_lost += 1
-        else:
-            self._send(self._feedback_id, payload)
+        elif self._send(self._feedback_id, payload):
             self.core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)
@@ -100,5 +99,10 @@ class LockstepClock:
         for kind, payload in self.core.take_outgoing():
             self._send(kind + self._node_id, payload)
 
-    def _send(self, arbitration_id: int, payload: bytes) -> None:
+    def _send(self, arbitration_id: int, payload: bytes) -> bool:
+        """Send one frame; False if the drive is silent (an injected fault) and nothing went out."""
+        if self.core.silent:
+            self.core.stats.frames_suppressed += 1
+            return False
         self.bus.send(can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False))
+        return True

@@ -204,6 +204,10 @@ class RealtimeClock:
                 self._send(kind + self._node_id, data)
 
     def _send(self, arbitration_id: int, payload: bytes) -> None:
+        if self.core.silent:
+            with self._lock:
+                self.core.stats.frames_suppressed += 1
+            return
         msg = can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
         with self._send_lock:
             try:

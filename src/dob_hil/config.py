@@ -320,6 +320,31 @@ class DisturbanceConfig:
 
 
 @dataclass(frozen=True)
+class FaultsConfig:
+    """``[sim.faults]``: faults the simulated drive injects on its own, at a simulated time.
+
+    Each ``*_at_s`` is a time after the drive's first enable, turned into a number of periods
+    ``round(t / Ts)`` (at least 1); None: never.
+    ``fault_at_s``: the drive enters FAULT (code OVERCURRENT). ``silent_at_s``: the drive stops
+    sending any frame (it still acts on what it receives). ``encoder_jump_at_s``: the encoder
+    counter steps by ``encoder_jump_counts`` and keeps the offset.
+    """
+
+    fault_at_s: float | None = None
+    silent_at_s: float | None = None
+    encoder_jump_at_s: float | None = None
+    encoder_jump_counts: int = 0
+
+    @property
+    def active(self) -> bool:
+        return (
+            self.fault_at_s is not None
+            or self.silent_at_s is not None
+            or (self.encoder_jump_at_s is not None and self.encoder_jump_counts != 0)
+        )
+
+
+@dataclass(frozen=True)
 class SimConfig:
     substeps: int = 10
     noise_counts_std: float = 0.0
@@ -329,6 +354,7 @@ class SimConfig:
     loss_probability: float = 0.0
     initial_state: tuple[float, ...] | None = None
     disturbances: tuple[DisturbanceConfig, ...] = ()
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
 
 
 @dataclass(frozen=True)
@@ -425,6 +451,8 @@ def _parse_plant(s: _Section) -> PlantConfig:
     if C is None:
         raise ConfigError(s.name("C"), "missing (the output matrix)")
     period_us = s.number("period_us", positive=True)
+    if period_us > 1e6:
+        raise ConfigError(s.name("period_us"), f"must be <= 1e6 us (1 s) for a servo loop, got {period_us:g}")
     period_ns = round(period_us * 1000.0)
     if period_ns <= 0 or abs(period_ns - period_us * 1000.0) > 1e-6 * max(1.0, period_us):
         raise ConfigError(s.name("period_us"), f"must be a whole number of ns, got {period_us} us")
@@ -540,9 +568,23 @@ def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
         loss_probability=s.number("loss_probability", 0.0, nonnegative=True, below=1.0),
         initial_state=init,
         disturbances=tuple(dists),
+        faults=_parse_faults(s.sub("faults")),
     )
     s.finish()
     return sim
+
+
+def _parse_faults(s: _Section) -> FaultsConfig:
+    faults = FaultsConfig(
+        fault_at_s=s.optional_number("fault_at_s", positive=True),
+        silent_at_s=s.optional_number("silent_at_s", positive=True),
+        encoder_jump_at_s=s.optional_number("encoder_jump_at_s", positive=True),
+        encoder_jump_counts=s.integer("encoder_jump_counts", 0, low=-(2**31), high=2**31 - 1),
+    )
+    if faults.encoder_jump_at_s is not None and faults.encoder_jump_counts == 0:
+        raise ConfigError(s.name("encoder_jump_counts"), "missing or 0: give the jump's size in counts")
+    s.finish()
+    return faults
 
 
 def _parse_reference(s: _Section, base_dir: Path) -> ReferenceConfig:

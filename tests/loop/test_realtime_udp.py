@@ -6,11 +6,11 @@ completes, accounts for every period, never exceeds the current limit, and ends 
 
 from __future__ import annotations
 
-import random
 from pathlib import Path
 
 import numpy as np
 import pytest
+from standalone import node_id_for_worker, paper_config_for_node, standalone_drive, udp_channel_or_skip
 
 from dob_hil.config import load_config
 from dob_hil.link.protocol import FrameKind
@@ -18,18 +18,16 @@ from dob_hil.log import read_log
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING
 from dob_hil.loop.session import RunOptions, run_session
 
-from standalone_drive import paper_config_for_node, standalone_drive, udp_channel_or_skip
-
 pytestmark = pytest.mark.realtime
 
 
 def test_realtime_run_over_udp_multicast(tmp_path: Path) -> None:
     channel = udp_channel_or_skip()
-    node_id = random.randint(2, 126)
+    node_id = node_id_for_worker()
     cfg_path = paper_config_for_node(tmp_path, node_id)
     config = load_config(cfg_path)
     log_path = tmp_path / "rt.mcap"
-    with standalone_drive(cfg_path, "udp_multicast", channel) as proc:
+    with standalone_drive(cfg_path, channel) as proc:
         summary = run_session(
             config,
             RunOptions(interface="udp_multicast", channel=channel, duration_s=1.0, log_path=log_path,

@@ -100,4 +100,6 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(d, indent=2))
     else:
         print(format_summary(d))
-    return 0 if summary.exit_reason == "completed" else (130 if summary.exit_reason == "SIGINT" else 1)
+    # the shell's convention for a process ended by a signal: 128 + the signal number
+    signal_exit = {"SIGINT": 130, "SIGTERM": 143}
+    return 0 if summary.exit_reason == "completed" else signal_exit.get(summary.exit_reason, 1)

@@ -73,7 +73,7 @@ class DesignAnalysis:
 
 def _peak(values: FloatArray, w: FloatArray, fn: Any) -> Peak:
     """Largest value on the grid, refined by a bounded search between its neighbours."""
-    import scipy.optimize  # noqa: PLC0415
+    import scipy.optimize
 
     i = int(np.argmax(values))
     lo, hi = w[max(i - 1, 0)], w[min(i + 1, w.size - 1)]

@@ -29,7 +29,7 @@ from dob_hil.errors import DesignError
 
 def zoh(A: Matrix, B: Matrix, period_ns: int) -> tuple[Matrix, Matrix]:
     """ZOH discretisation of (A, B) at ``period_ns``: returns (Phi, Gam)."""
-    import scipy.linalg  # noqa: PLC0415
+    import scipy.linalg
 
     if period_ns <= 0:
         raise DesignError(f"plant.period: must be > 0 ns, got {period_ns}")
@@ -37,7 +37,19 @@ def zoh(A: Matrix, B: Matrix, period_ns: int) -> tuple[Matrix, Matrix]:
     M = np.zeros((n + m, n + m))
     M[:n, :n] = A
     M[:n, n:] = B
-    E = scipy.linalg.expm(M * (period_ns * 1e-9))
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            E = scipy.linalg.expm(M * (period_ns * 1e-9))
+    except (np.linalg.LinAlgError, ValueError, OverflowError) as exc:
+        raise DesignError(
+            f"plant: the ZOH discretisation of A, B at {period_ns / 1e3:g} us failed ({exc}); "
+            "|A| * Ts is too large"
+        ) from None
+    if not np.all(np.isfinite(E)):
+        raise DesignError(
+            f"plant: the ZOH discretisation of A, B at {period_ns / 1e3:g} us overflows "
+            f"(|A| * Ts = {np.abs(M).max() * period_ns * 1e-9:.3g}); check plant.A, plant.B and period_us"
+        )
     Phi = np.array(E[:n, :n], dtype=np.float64)
     Gam = np.array(E[:n, n:], dtype=np.float64)
     return Phi, Gam

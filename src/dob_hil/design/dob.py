@@ -105,7 +105,7 @@ def locus_magnitudes(A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, gain
 def stable_edge(A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, k_ref: float) -> float | None:
     """Smallest k > 0 with rho(A0 - k Gam direction C) = 1 (A0 must be stable), or None if the locus
     stays inside the unit circle over the scanned range (up to 1e6 k_ref)."""
-    import scipy.optimize  # noqa: PLC0415
+    import scipy.optimize
 
     def f(k: float) -> float:
         return spectral_radius(A0 - k * (Gam @ direction @ C)) - 1.0
@@ -127,7 +127,7 @@ def min_radius_gain(
     A0: Matrix, Gam: Matrix, C: Matrix, direction: Matrix, k_hi: float
 ) -> tuple[float, float]:
     """(k, rho) minimising rho(A0 - k Gam direction C) over 0 <= k <= k_hi (grid, then Brent)."""
-    import scipy.optimize  # noqa: PLC0415
+    import scipy.optimize
 
     grid = np.linspace(0.0, k_hi, 801)
     rho = locus_radius(A0, Gam, C, direction, grid)

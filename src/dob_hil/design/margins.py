@@ -39,7 +39,7 @@ class Margins:
 
 
 def _refine(fn: Callable[[float], float], a: float, b: float) -> float:
-    import scipy.optimize  # noqa: PLC0415
+    import scipy.optimize
 
     fa, fb = fn(a), fn(b)
     if fa == 0.0:

@@ -25,10 +25,10 @@ def _db(x: Any) -> Any:
 
 def write_plots(a: DesignAnalysis, out_dir: Path) -> list[Path]:
     """Write the four PNGs into ``out_dir`` and return their paths."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
     d = a.result.design

@@ -77,7 +77,7 @@ def feedback_gain_from_X(X: Matrix, Phi: Matrix, Gam: Matrix, R2: Matrix) -> Mat
 
 def solve_estimator_dare(Phi: Matrix, C: Matrix, Gam1: Matrix, D1: Matrix) -> DareSolution:
     """Solve eq. 6 for Y and return Lc of eq. 7. ``Gam1`` is N x r, ``D1`` is p x s with D1 D1' > 0."""
-    import scipy.linalg  # noqa: PLC0415
+    import scipy.linalg
 
     N, p = Phi.shape[0], C.shape[0]
     if Gam1.shape[0] != N:
@@ -104,7 +104,7 @@ def solve_estimator_dare(Phi: Matrix, C: Matrix, Gam1: Matrix, D1: Matrix) -> Da
 
 def solve_feedback_dare(Phi: Matrix, Gam: Matrix, R1: Matrix, R2: Matrix) -> DareSolution:
     """Solve eq. 10 for X and return Kc of eq. 11. ``R1`` N x N >= 0, ``R2`` m x m > 0."""
-    import scipy.linalg  # noqa: PLC0415
+    import scipy.linalg
 
     N, m = Phi.shape[0], Gam.shape[1]
     if R1.shape != (N, N):

@@ -5,7 +5,10 @@ instant comes about.
 
 - Lockstep: the embedded drive advances one period per command; ``drive.service()`` runs between
   the command and the next receive, in this thread. Deterministic, as fast as the CPU allows.
-  ``time_ns`` is the simulated sample instant ``k * period_ns``.
+  ``time_ns`` is the simulated sample instant ``k * period_ns``. A command that never reached the
+  drive still costs it one period (``advance_period``: held current, a watchdog count). Samples
+  without feedback follow the cycle's missing-feedback policy; each gap is logged as a
+  ``feedback_lost`` event when feedback resumes.
 - Real time: the drive is the clock (it sends feedback every period) and its sequence number
   the sample index. Sample k's nominal instant is ``anchor + k * period_ns``, where the anchor
   follows the drive's clock with a slow first-order tracker (64 samples) so that drift between
@@ -36,6 +39,11 @@ class StopRequest(Protocol):
 
 class LockstepDrive(Protocol):
     def service(self) -> int: ...
+
+    def advance_period(self) -> None: ...
+
+    @property
+    def period_index(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -78,6 +86,11 @@ def run_lockstep(
         service()
         fb = receive(0)
         time_ns = k * period_ns
+        if fb is None and drive.period_index < k:
+            # the command of sample k - 1 never reached the drive: its clock runs on without one
+            # (the held current, a watchdog count), as a drive on its own crystal would
+            drive.advance_period()
+            fb = receive(0)
         if fb is None:
             missing_run += 1
             if missing_run >= limits.timeout_periods:
@@ -85,7 +98,9 @@ def run_lockstep(
             answer = 0 if expected_seq is None else expected_seq
             on_missing(k, time_ns, answer, 0, False)
         else:
-            missing_run = 0
+            if missing_run:
+                _log_gap(log, k, missing_run)
+                missing_run = 0
             if fb.fault:
                 raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
             on_feedback(k, time_ns, fb, 0, False)
@@ -98,6 +113,17 @@ def run_lockstep(
                 progress(k)
     service()  # let the drive take the last command
     return "completed"
+
+
+def _log_gap(log: LogWriter, k: int, count: int) -> None:
+    """Lockstep: the event for ``count`` samples before ``k`` that had no feedback."""
+    log.event(
+        time.monotonic_ns(),
+        "warning",
+        "feedback_lost",
+        f"no feedback for {count} sample(s) before sample {k}",
+        {"first_sample": k - count, "count": count},
+    )
 
 
 def run_realtime(
@@ -161,15 +187,16 @@ def run_realtime(
             continue
         if delta > 0:
             kind = "overrun_skip" if overrun else "feedback_lost"
+            fill = min(delta, limits.n_samples - k)  # a gap may run past the end of the run
             log.event(
                 clock_ns(),
                 "warning",
                 kind,
                 f"{delta} sample(s) before seq {fb.seq} {'skipped' if overrun else 'lost'}",
-                {"first_sample": k, "count": delta},
+                {"first_sample": k, "count": fill},
             )
-            cycle.stats.skipped += delta
-            for _ in range(min(delta, limits.n_samples - k)):
+            cycle.stats.skipped += fill
+            for _ in range(fill):
                 cycle.on_lost(k, anchor_ns + k * period_ns, expected_seq)
                 k += 1
                 expected_seq = (expected_seq + 1) % SEQ_MODULO

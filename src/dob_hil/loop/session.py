@@ -32,6 +32,7 @@ from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
 from dob_hil.link.busload import check_bus_load
 from dob_hil.link.native import NativeDriveLink
+from dob_hil.link.protocol import DriveState
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
@@ -53,6 +54,8 @@ class RunOptions:
     rt: RtSettings = field(default_factory=RtSettings)
     progress: Callable[[int, int], None] | None = None  # (done, total)
     enable_timeout_s: float = 2.0
+    # wraps the host's bus end (fault injection in tests: firmware_sim.faulty_bus.FaultyBus)
+    bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None
 
 
 @dataclass
@@ -247,6 +250,8 @@ def _run_with_log(
             ),
         )
     frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
+    if options.bus_wrapper is not None:
+        host_bus = options.bus_wrapper(host_bus)
     link = NativeDriveLink(host_bus, config.drive, frame_hook=frame_hook, event_hook=on_event, owns_bus=True)
     cycle = ControlCycle(
         step,
@@ -310,6 +315,12 @@ def _run_with_log(
             if mode == "lockstep":
                 while drive.service():  # the zero command, then the disable
                     pass
+                # a stop that never arrived (bus off): the drive's own clock runs on until its
+                # watchdog trips, as it would on hardware; the log's truth channel shows it
+                for _ in range(config.drive.watchdog_periods + 1):
+                    if drive.state is not DriveState.ENABLED:
+                        break
+                    drive.advance_period()
             else:
                 drive.stop()
         if rt_report is not None:
