@@ -36,6 +36,7 @@ Behaviour (the firmware's contract):
 from __future__ import annotations
 
 import enum
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -43,6 +44,7 @@ from dob_hil.config import Config
 from dob_hil.errors import ProtocolError
 from dob_hil.link.protocol import (
     COMMAND_SEQ_MODULO,
+    DLC,
     SEQ_MODULO,
     ControlRequest,
     DriveState,
@@ -71,6 +73,9 @@ from firmware_sim.watchdog import CommandWatchdog
 
 HEARTBEAT_PERIOD_NS = 100_000_000  # 10 Hz
 REALTIME_ACCEPT_WINDOW_MAX = 64  # half the 7-bit command sequence space
+_COMMAND_STRUCT = struct.Struct("<hB")  # protocol.COMMAND: i16 current, u8 seq7 | enable << 7
+_COMMAND_DLC = DLC[FrameKind.COMMAND]
+_FEEDBACK_STRUCT = struct.Struct("<iBB")  # protocol.FEEDBACK: i32 counts, u8 seq, u8 status
 _ST_OFF = Status(0)
 _ST_ENABLED = Status.ENABLED
 _ST_ENABLED_SATURATED = Status.ENABLED | Status.SATURATED
@@ -158,8 +163,11 @@ class DriveCore:
     def on_frame(self, arbitration_id: int, data: bytes | bytearray, t_ns: int) -> FrameResult:
         """Act on a received frame at simulated time ``t_ns`` (>= :attr:`time_ns`)."""
         if arbitration_id == self.command_id:
+            if len(data) == _COMMAND_DLC:  # the per-period fast path: the codec's layout, no objects
+                current_counts, tail = _COMMAND_STRUCT.unpack(data)
+                return self._on_command(current_counts, tail & 0x7F, bool(tail & 0x80), t_ns)
             try:
-                cmd = decode_command(data)
+                cmd = decode_command(data)  # raises, naming what is wrong
             except ProtocolError:
                 return self._bad_frame(arbitration_id, t_ns)
             return self._on_command(cmd.current_counts, cmd.seq, cmd.enable, t_ns)
@@ -281,7 +289,10 @@ class DriveCore:
         seq = self._samples % SEQ_MODULO
         self._samples += 1
         self.stats.samples += 1
-        payload = encode_feedback(FeedbackFrame(counts, seq, status))
+        try:  # the codec's layout packed directly (per period); the codec names a bad value
+            payload = _FEEDBACK_STRUCT.pack(counts, seq, status)
+        except struct.error:
+            payload = encode_feedback(FeedbackFrame(counts, seq, status))
         if not self.want_truth:
             return payload, None
         t = self.time_ns

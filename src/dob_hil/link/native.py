@@ -327,7 +327,10 @@ class NativeDriveLink:
         timeout_s = timeout_ns * 1e-9 if timeout_ns > 0 else 0.0
         reads_after_deadline = 0
         while True:
-            msg = self._recv(recv, timeout_s)
+            try:  # (inlined rather than self._recv: this is the per-period path)
+                msg = recv(timeout_s)
+            except can.CanError as exc:
+                raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
             if msg is None:
                 return None
             now_ns = clock_ns()
@@ -417,7 +420,9 @@ class NativeDriveLink:
                 self.stats.missed_feedback += ahead - 1
         self._last_seq = seq
         unwrapper = self._unwrapper
-        step = unwrapper.step(raw_counts)
+        before = unwrapper.position
+        counts = unwrapper.update(raw_counts)
+        step = counts - before if before is not None else 0
         if step > self._max_counts_step or step < -self._max_counts_step:
             self.stats.encoder_jumps += 1
             self._event(
@@ -426,7 +431,6 @@ class NativeDriveLink:
                 f"node {self._node}: encoder step {step} counts at seq {seq} "
                 f"exceeds the plausibility bound {self._max_counts_step}",
             )
-        counts = unwrapper.update(raw_counts)
         enabled = bool(status & _ENABLED)
         fault = bool(status & _FAULT)
         state = DriveState.FAULT if fault else DriveState.ENABLED if enabled else DriveState.DISABLED
@@ -530,9 +534,9 @@ class NativeDriveLink:
 
     def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
         self._check_open()
-        msg = can.Message(
-            timestamp=time.time(), arbitration_id=arbitration_id, is_extended_id=False, data=payload
-        )
+        # no timestamp: the interface stamps what it sends (the frame hook falls back to the
+        # loop's clock where it does not)
+        msg = can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=payload)
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:

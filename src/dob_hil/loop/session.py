@@ -135,7 +135,10 @@ def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message
     if lockstep_drive is not None:
 
         def stamp_lockstep(msg: can.Message, is_rx: bool) -> None:
-            aid, dlc, data, flags = parts(msg)
+            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
+                aid, dlc, data, flags = parts(msg)
+            else:  # the per-period case, kept short: a classic data frame
+                aid, dlc, data, flags = msg.arbitration_id, msg.dlc, msg.data, 0
             frame_raw(lockstep_drive.time_ns, aid, is_rx, dlc, data, flags)
 
         return stamp_lockstep
