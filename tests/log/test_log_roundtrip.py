@@ -185,3 +185,27 @@ def test_can_messages_classic_fd_error_remote(tmp_path: Path) -> None:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         lib = [obj for _, _, _, obj in reader.iter_decoded_messages(topics=["/dob_hil/can_fd"])]
     assert [list(m.data) for m in lib] == fd["data"].tolist()
+
+
+def test_a_subset_of_fields_reads_the_same_values(small_log: tuple[Path, Any, Any]) -> None:
+    path = small_log[0]
+    whole = read_log(path)
+    keep = {"/dob_hil/sample": ["time_ns", "x_hat", "flags"], "/dob_hil/can": ["timestamp_ns", "dlc"]}
+    part = read_log(path, fields=keep)
+    assert part.samples.dtype.names == ("time_ns", "x_hat", "flags")
+    assert part.frames.dtype.names == ("timestamp_ns", "dlc")
+    for name in keep["/dob_hil/sample"]:
+        np.testing.assert_array_equal(part.samples[name], whole.samples[name])
+    for name in keep["/dob_hil/can"]:
+        np.testing.assert_array_equal(part.frames[name], whole.frames[name])
+    assert part.samples.dtype.itemsize < whole.samples.dtype.itemsize
+    np.testing.assert_array_equal(part.truth, whole.truth)  # topics not named are read whole
+
+
+def test_an_unknown_field_is_named(small_log: tuple[Path, Any, Any]) -> None:
+    import pytest
+
+    from dob_hil.errors import LogReadError
+
+    with pytest.raises(LogReadError, match="no field 'x_nope'"):
+        read_log(small_log[0], fields={"/dob_hil/sample": ["x_nope"]})

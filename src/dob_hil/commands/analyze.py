@@ -52,7 +52,7 @@ def analyze_logs(
     stdout, warnings on stderr), write the overlaid plots (unless ``plots`` is False) into
     ``plots_dir`` (None: :func:`default_plots_dir`) and return the metrics, one dict per log.
     Raises LogReadError for a file that is no log at all, ConfigError for a bad ``from_s``."""
-    from dob_hil.analysis.loaded import load_log
+    from dob_hil.analysis.loaded import ANALYSIS_FIELDS, load_log
     from dob_hil.analysis.metrics import compute_metrics
     from dob_hil.analysis.signals import derive_signals
     from dob_hil.analysis.table import format_table
@@ -62,7 +62,7 @@ def analyze_logs(
     if not (math.isfinite(from_s) and from_s >= 0.0):
         raise ConfigError("--from", f"must be a number of seconds >= 0, got {from_s}")
     paths = [Path(p) for p in paths]
-    logs = [load_log(p) for p in paths]
+    logs = [load_log(p, fields=ANALYSIS_FIELDS) for p in paths]
     signals = [derive_signals(log) for log in logs]
     results = [_clean(compute_metrics(log, from_s, sig)) for log, sig in zip(logs, signals, strict=True)]
     for log, metrics in zip(logs, results, strict=True):
