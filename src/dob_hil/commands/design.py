@@ -22,7 +22,9 @@ def write_design_outputs(
     from dob_hil.design import design_with_diagnostics
     from dob_hil.design.analysis import analyze
     from dob_hil.design.report import format_report
+    from dob_hil.link.busload import check_bus_load
 
+    load = check_bus_load(config.drive, config.plant.period_ns)  # refuses a load above 100 %
     result = design_with_diagnostics(config)
     analysis = analyze(result, config)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -35,10 +37,19 @@ def write_design_outputs(
         files += write_plots(analysis, out_dir)
     report = analysis.to_dict()
     report["files"] = [str(p) for p in files]
+    report["bus_load"] = {
+        "worst_case_fraction": load.fraction,
+        "time_per_period_us": load.time_per_period_us,
+        "bitrate_bps": load.bitrate_bps,
+        "frame_bits": dict(load.frame_bits),
+        "frames_per_period": dict(load.frames_per_period),
+    }
     if as_json:
         print(json.dumps(report, indent=1, allow_nan=False))
     elif not quiet:
         print(format_report(report))
+        print()
+        print(load.breakdown())
     return report
 
 
