@@ -315,7 +315,8 @@ class NativeDriveLink:
     # --- receiving -------------------------------------------------------------------------------
     def receive_feedback(self, timeout_ns: int) -> Feedback | None:
         """The next valid feedback of our drive, or None once ``timeout_ns`` (wall clock) has passed."""
-        self._check_open()
+        if self._closed:
+            self._check_open()
         if self._pending_feedback is not None:
             pending, self._pending_feedback = self._pending_feedback, None
             return pending
@@ -323,8 +324,11 @@ class NativeDriveLink:
         clock_ns = self._clock_ns
         hook = self._frame_hook
         feedback_id = self._feedback_id
-        deadline_ns = time.monotonic_ns() + timeout_ns
-        timeout_s = timeout_ns * 1e-9 if timeout_ns > 0 else 0.0
+        if timeout_ns > 0:
+            deadline_ns = time.monotonic_ns() + timeout_ns
+            timeout_s = timeout_ns * 1e-9
+        else:  # lockstep: read what is queued, no clock needed
+            deadline_ns, timeout_s = 0, 0.0
         reads_after_deadline = 0
         while True:
             try:  # (inlined rather than self._recv: this is the per-period path)

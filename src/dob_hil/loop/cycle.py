@@ -162,6 +162,6 @@ class ControlCycle:
             s.saturated += 1
         if overrun:
             s.overruns += 1
-        a = max(abs(u) for u in applied)
-        s.max_abs_applied_A = max(s.max_abs_applied_A, a)
+        # builtins on the tuple, no generator per sample
+        s.max_abs_applied_A = max(s.max_abs_applied_A, *applied, -min(applied))
         s.compute_ns_max = max(s.compute_ns_max, compute_ns)
