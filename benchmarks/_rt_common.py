@@ -135,12 +135,20 @@ def _wait_for_text(path: Path, proc: subprocess.Popen[bytes], needle: str, timeo
 
 @contextmanager
 def standalone_drive(
-    config: Path, channel: str, directory: Path, *, spin_us: float | None = None, cpu: int | None = None
+    config: Path,
+    channel: str,
+    directory: Path,
+    *,
+    spin_us: float | None = None,
+    cpu: int | None = None,
+    sched_fifo: bool = False,
 ) -> Iterator[Drive]:
     """The simulated drive in its own process; stopped with SIGINT on exit (its summary kept)."""
     cmd = [sys.executable, "-m", "firmware_sim", str(config), "-i", "udp_multicast", "-c", channel]
     if spin_us is not None:
         cmd += ["--spin-us", f"{spin_us:g}"]
+    if sched_fifo:
+        cmd += ["--sched-fifo"]
     stderr_path = directory / f"firmware_sim-{os.getpid()}-{secrets.token_hex(3)}.stderr"
     with stderr_path.open("wb") as err:
         proc = subprocess.Popen(cmd, env=child_env(), stdout=subprocess.DEVNULL, stderr=err)

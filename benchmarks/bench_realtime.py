@@ -11,7 +11,7 @@ process and an echo process (``udp_echo.py``), paced at the period, with the sam
 Goals: overruns <= 0.1 % of cycles; latency p50 <= 20 us, p99 <= 60 us.
 
     .venv/bin/python benchmarks/bench_realtime.py [--smoke] [--json] [--duration S]
-        [--sched-fifo] [--cpu N] [--freeze-gc] [--drive-cpu N] [--spin-us US]
+        [--sched-fifo] [--cpu N] [--freeze-gc] [--drive-cpu N] [--drive-sched-fifo] [--spin-us US]
         [--patience-periods N] [--keep-log PATH]
 
 The watchdog and host timeout are widened from 10 to ``--patience-periods`` (default 200) so
@@ -58,6 +58,7 @@ def build_parser() -> Any:
     p.add_argument("--cpu", type=int, action="append", help="pin the loop to this CPU (repeatable)")
     p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() + gc.disable() in the loop")
     p.add_argument("--drive-cpu", type=int, help="pin firmware_sim (and the echo process) to this CPU")
+    p.add_argument("--drive-sched-fifo", action="store_true", help="firmware_sim --sched-fifo")
     p.add_argument("--spin-us", type=float, help="firmware_sim --spin-us (default: its own, 100)")
     p.add_argument("--patience-periods", type=int, default=200, help="watchdog/host timeout; 0: keep 10")
     p.add_argument("--round-trips", type=int, help="bare round trips before and after (default 5000)")
@@ -102,7 +103,9 @@ def main() -> None:
                 restore_rt_settings(rt)
 
         rtt = round_trip()
-        with standalone_drive(cfg_path, channel, tmp, spin_us=args.spin_us, cpu=args.drive_cpu) as drive:
+        with standalone_drive(
+            cfg_path, channel, tmp, spin_us=args.spin_us, cpu=args.drive_cpu, sched_fifo=args.drive_sched_fifo
+        ) as drive:
             summary = run_session(
                 config,
                 RunOptions(

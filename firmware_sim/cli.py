@@ -22,6 +22,7 @@ import can
 
 from dob_hil.config import load_config
 from dob_hil.errors import DobHilError
+from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.drive import SimulatedDrive
 from firmware_sim.plant import check_single_axis
 from firmware_sim.truth import UdpTruthSender
@@ -40,6 +41,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-b", "--bitrate", type=int, help="bus bitrate in bit/s")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until a signal)")
     p.add_argument("--truth-port", type=int, help="send ground truth as UDP datagrams to 127.0.0.1:PORT")
+    p.add_argument(
+        "--sched-fifo",
+        action="store_true",
+        help="run the drive's threads under SCHED_FIFO (where permitted), like firmware on its own core",
+    )
+    p.add_argument("--cpu", type=int, action="append", help="pin the drive to this CPU (repeatable)")
     p.add_argument(
         "--spin-us",
         type=float,
@@ -94,6 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             bus, config, clock="realtime", truth_sink=sink, spin_ns=round(args.spin_us * 1000)
         )
         gc.freeze()  # long-lived objects out of the collector's way (gen-2 pauses of several ms)
+        # OS plumbing only (no controller code): the drive's threads inherit these settings
+        rt = apply_rt_settings(RtSettings(sched_fifo=args.sched_fifo, cpus=tuple(args.cpu or ())))
+        for refused in rt.refused:
+            print(f"{PROG}: warning: {refused}", file=sys.stderr, flush=True)
         drive.start()
         print(
             f"{PROG}: node {config.drive.node_id} on {bus.channel_info}, "
