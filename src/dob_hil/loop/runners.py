@@ -165,14 +165,15 @@ def run_realtime(
         if reason is not None:
             return reason
         if fb is None:
+            # read first, judge after: frames queued while this process was stalled still count
             remaining_ns = last_rx_ns + timeout_ns - clock_ns()
-            if remaining_ns <= 0:
-                raise DriveFault(
-                    f"no feedback from the drive for {limits.timeout_periods} periods "
-                    f"({timeout_ns / 1e6:g} ms: host timeout)"
-                )
-            fb = receive(min(remaining_ns, 20 * period_ns))  # bounded, so a stop request is seen
+            fb = receive(min(max(remaining_ns, 0), 20 * period_ns))  # bounded: a stop is seen
             if fb is None:
+                if clock_ns() - last_rx_ns >= timeout_ns:
+                    raise DriveFault(
+                        f"no feedback from the drive for {limits.timeout_periods} periods "
+                        f"({timeout_ns / 1e6:g} ms: host timeout)"
+                    )
                 continue
         if fb.fault:
             raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
