@@ -296,12 +296,12 @@ class DriveCore:
         if not self.want_truth:
             return payload, None
         t = self.time_ns
-        truth = GroundTruth(
-            period_index=t // self.period_ns,
-            time_ns=t,
-            state=self.plant.state,
-            disturbance_A=self.disturbance.value_A(t * 1e-9),
-            applied_current_A=self.path.held_A,
-            drive_state=state,
+        truth = GroundTruth(  # positional: the per-period path (period_index, time_ns, state, w, i, state)
+            t // self.period_ns,
+            t,
+            self.plant.state,
+            self.disturbance.value_A(t * 1e-9),
+            self.path.held_A,
+            state,
         )
         return payload, truth

@@ -153,6 +153,17 @@ def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message
     return stamp_realtime
 
 
+def _truth_sink(log: LogWriter) -> Callable[[Any], None]:
+    """The simulated drive's ground truth to the log (one call per period: kept short)."""
+    write = log.truth
+
+    def sink(t: Any) -> None:
+        period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+        write(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
+
+    return sink
+
+
 def default_log_path(config: Config, dob_enabled: bool) -> Path:
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
     return config.run.log_dir / f"{config.name}-{'dob' if dob_enabled else 'nodob'}-{stamp}.mcap"
@@ -244,14 +255,7 @@ def _run_with_log(
             drive_bus,
             config,
             clock="realtime" if options.realtime else "lockstep",
-            truth_sink=lambda t: log.truth(
-                t.time_ns,
-                t.state,
-                (t.disturbance_A,),
-                (t.applied_current_A,),
-                t.period_index,
-                int(t.drive_state),
-            ),
+            truth_sink=_truth_sink(log),
         )
     frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
     if options.bus_wrapper is not None:
