@@ -18,7 +18,6 @@ import json
 import os
 import random
 import secrets
-import signal
 import subprocess
 import sys
 import time
@@ -34,6 +33,8 @@ from _common import percentiles
 from dob_hil.log import LogData
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING, FLAG_OVERRUN
 from dob_hil.scenarios import scenario_path
+from firmware_sim import process
+from firmware_sim.process import StandaloneDrive
 
 BENCH_DIR = Path(__file__).resolve().parent
 REPO_ROOT = BENCH_DIR.parent
@@ -106,68 +107,21 @@ def _pin(pid: int, cpu: int | None) -> None:
         os.sched_setaffinity(pid, {cpu})
 
 
-@dataclass
-class Drive:
-    proc: subprocess.Popen[bytes]
-    stderr_path: Path
-    stderr_text: str = ""
-    exit_status: int | None = None
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def last_line(self) -> str:
-        lines = [ln for ln in self.stderr_text.splitlines() if ln.strip()]
-        return lines[-1] if lines else ""
-
-
-def _wait_for_text(path: Path, proc: subprocess.Popen[bytes], needle: str, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        text = path.read_text(errors="replace") if path.exists() else ""
-        if needle in text:
-            return
-        if proc.poll() is not None:
-            raise RuntimeError(f"firmware_sim exited with status {proc.returncode}: {text.strip()}")
-        time.sleep(0.05)
-    raise RuntimeError(f"firmware_sim did not report ready within {timeout_s:g} s")
-
-
 @contextmanager
 def standalone_drive(
     config: Path,
     channel: str,
-    directory: Path,
     *,
     spin_us: float | None = None,
     cpu: int | None = None,
     sched_fifo: bool = False,
-) -> Iterator[Drive]:
-    """The simulated drive in its own process; stopped with SIGINT on exit (its summary kept)."""
-    cmd = [sys.executable, "-m", "firmware_sim", str(config), "-i", "udp_multicast", "-c", channel]
-    if spin_us is not None:
-        cmd += ["--spin-us", f"{spin_us:g}"]
-    if sched_fifo:
-        cmd += ["--sched-fifo"]
-    stderr_path = directory / f"firmware_sim-{os.getpid()}-{secrets.token_hex(3)}.stderr"
-    with stderr_path.open("wb") as err:
-        proc = subprocess.Popen(cmd, env=child_env(), stdout=subprocess.DEVNULL, stderr=err)
-    _pin(proc.pid, cpu)
-    drive = Drive(proc, stderr_path)
-    try:
-        _wait_for_text(stderr_path, proc, "stop with SIGINT", 30.0)
+) -> Iterator[StandaloneDrive]:
+    """The simulated drive in its own process over udp_multicast (firmware_sim.process)."""
+    with process.standalone_drive(
+        config, "udp_multicast", channel, spin_us=spin_us, sched_fifo=sched_fifo,
+        cpus=() if cpu is None else (cpu,), env=child_env(),
+    ) as drive:  # fmt: skip
         yield drive
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        drive.exit_status = proc.returncode
-        drive.stderr_text = stderr_path.read_text(errors="replace")
-        stderr_path.unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------- bare round trip

@@ -104,7 +104,7 @@ def main() -> None:
 
         rtt = round_trip()
         with standalone_drive(
-            cfg_path, channel, tmp, spin_us=args.spin_us, cpu=args.drive_cpu, sched_fifo=args.drive_sched_fifo
+            cfg_path, channel, spin_us=args.spin_us, cpu=args.drive_cpu, sched_fifo=args.drive_sched_fifo
         ) as drive:
             summary = run_session(
                 config,

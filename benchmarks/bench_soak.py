@@ -133,7 +133,7 @@ def main() -> None:
         if args.freeze_gc:
             cmd.append("--freeze-gc")
         series: list[tuple[float, int, int | None]] = []  # (s since start, loop KiB, writer KiB)
-        with standalone_drive(cfg_path, channel, tmp, spin_us=args.spin_us, cpu=args.drive_cpu) as drive:
+        with standalone_drive(cfg_path, channel, spin_us=args.spin_us, cpu=args.drive_cpu) as drive:
             with (tmp / "run.out").open("wb") as out, (tmp / "run.err").open("wb") as err:
                 t0 = time.monotonic()
                 proc = subprocess.Popen(cmd, stdout=out, stderr=err, env=child_env())

@@ -25,6 +25,7 @@ from dob_hil.errors import DobHilError
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.drive import SimulatedDrive
 from firmware_sim.plant import check_single_axis
+from firmware_sim.process import READY_TEXT
 from firmware_sim.truth import UdpTruthSender
 
 PROG = "firmware_sim"
@@ -108,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         drive.start()
         print(
             f"{PROG}: node {config.drive.node_id} on {bus.channel_info}, "
-            f"period {config.plant.period_ns / 1000:g} us; stop with SIGINT",
+            f"period {config.plant.period_ns / 1000:g} us; {READY_TEXT}",
             file=sys.stderr,
             flush=True,
         )

@@ -33,7 +33,7 @@ def test_realtime_run_over_udp_multicast(tmp_path: Path) -> None:
             RunOptions(interface="udp_multicast", channel=channel, duration_s=1.0, log_path=log_path,
                        enable_timeout_s=15.0),
         )  # fmt: skip
-        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        assert proc.alive(), proc.last_line()
     assert summary.mode == "realtime"
     assert summary.exit_reason == "completed"
     data = read_log(log_path)

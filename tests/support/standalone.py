@@ -5,12 +5,8 @@ would be lost), and the drive's ground truth can be collected from its UDP truth
 from __future__ import annotations
 
 import os
-import queue
 import random
-import signal
 import socket
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -20,6 +16,8 @@ import can
 import pytest
 
 from dob_hil.scenarios import scenario_path
+from firmware_sim import process
+from firmware_sim.process import StandaloneDrive
 from firmware_sim.truth import GroundTruth, decode_truth
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -38,9 +36,6 @@ def paper_config_for_node(tmp_path: Path, node_id: int, *, patience_periods: int
     path = tmp_path / f"paper-node{node_id}.toml"
     path.write_text(text)
     return path
-
-
-READY_TEXT = "stop with SIGINT"
 
 
 def udp_channel_or_skip() -> str:
@@ -94,38 +89,16 @@ class TruthReceiver:
 @contextmanager
 def standalone_drive(
     config: Path, channel: str, *, truth_port: int | None = None, ready_timeout_s: float = 20.0
-) -> Iterator[subprocess.Popen[str]]:
+) -> Iterator[StandaloneDrive]:
+    """firmware_sim.process.standalone_drive over udp_multicast, as the tests use it: no busy-wait
+    (the tests share the CPUs), this checkout's firmware_sim first on the path."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    cmd = [sys.executable, "-m", "firmware_sim", str(config), "-i", "udp_multicast", "-c", channel]
-    cmd += ["--spin-us", "0"]  # no busy-wait: these tests share the CPUs with others
-    if truth_port is not None:
-        cmd += ["--truth-port", str(truth_port)]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    lines: queue.Queue[str] = queue.Queue()
-
-    def pump() -> None:
-        assert proc.stderr is not None
-        for line in proc.stderr:
-            lines.put(line)
-
-    threading.Thread(target=pump, name="drive-stderr", daemon=True).start()
     try:
-        seen: list[str] = []
-        while True:
-            try:
-                line = lines.get(timeout=ready_timeout_s)
-            except queue.Empty:
-                pytest.fail(f"firmware_sim did not start within {ready_timeout_s} s: {seen}")
-            seen.append(line)
-            if READY_TEXT in line:
-                break
-        yield proc
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        with process.standalone_drive(
+            config, "udp_multicast", channel, spin_us=0, truth_port=truth_port, env=env,
+            ready_timeout_s=ready_timeout_s,
+        ) as drive:  # fmt: skip
+            yield drive
+    except RuntimeError as exc:
+        pytest.fail(str(exc))
