@@ -32,7 +32,7 @@ from _common import percentiles
 
 from dob_hil.log import LogData
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING, FLAG_OVERRUN
-from dob_hil.scenarios import scenario_path
+from dob_hil.scenarios import scenario_variant
 from firmware_sim import process
 from firmware_sim.process import StandaloneDrive
 
@@ -67,32 +67,15 @@ def private_udp_port() -> int:
 
 
 def udp_channel() -> str:
-    import can
-
-    channel = f"239.74.163.{random.randint(10, 250)}"
     try:
-        can.Bus(interface="udp_multicast", channel=channel).shutdown()
-    except (OSError, can.CanError, ImportError, NotImplementedError, ValueError) as exc:
-        raise Unavailable(f"udp_multicast cannot be opened here: {exc}") from exc
-    return channel
+        return process.free_udp_multicast_channel()
+    except RuntimeError as exc:
+        raise Unavailable(str(exc)) from exc
 
 
 def node_config(directory: Path, node_id: int, patience_periods: int | None) -> Path:
     """paper-step with ``node_id``; watchdog and host timeout widened to ``patience_periods``."""
-    text = scenario_path("paper-step").read_text()
-    for old, new in (("node_id = 1\n", f"node_id = {node_id}\n"),):
-        if old not in text:
-            raise RuntimeError(f"paper-step.toml no longer contains {old!r}")
-        text = text.replace(old, new)
-    if patience_periods is not None:
-        for key in ("watchdog_periods", "feedback_timeout_periods"):
-            old = f"{key} = 10\n"
-            if old not in text:
-                raise RuntimeError(f"paper-step.toml no longer contains {old!r}")
-            text = text.replace(old, f"{key} = {patience_periods}\n")
-    path = directory / f"paper-node{node_id}.toml"
-    path.write_text(text)
-    return path
+    return scenario_variant("paper-step", directory, node_id=node_id, patience_periods=patience_periods)
 
 
 def child_env() -> dict[str, str]:

@@ -9,6 +9,7 @@ and on exit stops it with SIGINT so that it prints its summary (killed only if i
 from __future__ import annotations
 
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -43,6 +44,21 @@ class StandaloneDrive:
 
     def _read(self) -> str:
         return self.stderr_path.read_text(errors="replace") if self.stderr_path.exists() else ""
+
+
+def free_udp_multicast_channel() -> str:
+    """A random multicast group of 239.74.163.0/24 on which a python-can udp_multicast bus opens.
+
+    Raises RuntimeError naming why where udp_multicast cannot be used on this machine.
+    """
+    import can
+
+    channel = f"239.74.163.{random.randint(10, 250)}"
+    try:
+        can.Bus(interface="udp_multicast", channel=channel).shutdown()
+    except (OSError, can.CanError, ImportError, NotImplementedError, ValueError) as exc:
+        raise RuntimeError(f"udp_multicast cannot be opened here: {exc}") from exc
+    return channel
 
 
 def drive_command(

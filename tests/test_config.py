@@ -162,3 +162,13 @@ def test_generated_configs_parse_or_raise_config_error(edits: list[tuple[str, An
         parse_config(data)
     except ConfigError as exc:
         assert exc.field and exc.problem
+
+
+def test_scenario_variant_sets_node_and_patience(tmp_path: Path) -> None:
+    from dob_hil.scenarios import scenario_variant
+
+    cfg = load_config(scenario_variant("paper-step", tmp_path, node_id=42, patience_periods=200))
+    assert cfg.drive.node_id == 42
+    assert cfg.drive.watchdog_periods == cfg.drive.feedback_timeout_periods == 200
+    plain = load_config(scenario_variant("paper-sine", tmp_path, node_id=7))
+    assert plain.drive.node_id == 7 and plain.drive.watchdog_periods == 10

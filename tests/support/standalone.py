@@ -12,10 +12,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import can
 import pytest
 
-from dob_hil.scenarios import scenario_path
+from dob_hil.scenarios import scenario_variant
 from firmware_sim import process
 from firmware_sim.process import StandaloneDrive
 from firmware_sim.truth import GroundTruth, decode_truth
@@ -24,27 +23,17 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def paper_config_for_node(tmp_path: Path, node_id: int, *, patience_periods: int = 200) -> Path:
-    """paper-step with its own node id (tests share the multicast port) and patient timeouts.
-
-    The timeouts are widened from 10 periods (3 ms) so that a VM stall of a loaded CI machine
-    (measured 2-36 ms on this kind of machine) does not end a test run.
-    """
-    text = scenario_path("paper-step").read_text()
-    text = text.replace("node_id = 1\n", f"node_id = {node_id}\n")
-    text = text.replace("watchdog_periods = 10\n", f"watchdog_periods = {patience_periods}\n")
-    text = text.replace("feedback_timeout_periods = 10\n", f"feedback_timeout_periods = {patience_periods}\n")
-    path = tmp_path / f"paper-node{node_id}.toml"
-    path.write_text(text)
-    return path
+    """paper-step with its own node id (tests share the multicast port) and patient timeouts:
+    widened from 10 periods (3 ms) so that a VM stall of a loaded CI machine (2-36 ms measured on
+    this kind of machine) does not end a test run."""
+    return scenario_variant("paper-step", tmp_path, node_id=node_id, patience_periods=patience_periods)
 
 
 def udp_channel_or_skip() -> str:
-    channel = f"239.74.163.{random.randint(10, 250)}"
     try:
-        can.Bus(interface="udp_multicast", channel=channel).shutdown()
-    except (OSError, can.CanError, ImportError, NotImplementedError, ValueError) as exc:
-        pytest.skip(f"udp_multicast cannot be opened here: {exc}")
-    return channel
+        return process.free_udp_multicast_channel()
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
 
 
 def node_id_for_worker() -> int:
