@@ -124,6 +124,11 @@ class SimulatedDrive:
         return self._lockstep.core.state
 
     @property
+    def enabled(self) -> bool:
+        """The power stage is on (state ENABLED)."""
+        return self.state is DriveState.ENABLED
+
+    @property
     def period_index(self) -> int:
         """Index of the sample instant the physics has reached (``time_ns // period_ns``)."""
         if self._realtime is not None:

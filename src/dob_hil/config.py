@@ -30,7 +30,6 @@ Matrix = npt.NDArray[np.float64]
 MISSING_FEEDBACK_POLICIES = ("hold", "extrapolate", "zero")
 REFERENCE_KINDS = ("step", "sine", "csv")
 DISTURBANCE_KINDS = ("sine", "step", "noise")
-DRIVE_PROFILES = ("native",)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,6 +172,9 @@ class _Section:
             raise ConfigError(self.name(key), f"unknown key{hint}")
 
 
+ConfigSection = _Section  # what a profile's parse_options receives: its [drive.<profile>] table
+
+
 def _kind(value: object) -> str:
     if isinstance(value, bool):
         return f"boolean {value}"
@@ -305,6 +307,8 @@ class DriveConfig:
     encoder_bits: int = 32
     watchdog_periods: int = 10
     feedback_timeout_periods: int = 10
+    # the profile's own settings, parsed by its descriptor from [drive.<profile>] (None: it has none)
+    options: object = None
 
 
 @dataclass(frozen=True)
@@ -511,8 +515,16 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
 
 
 def _parse_drive(s: _Section) -> DriveConfig:
+    from dob_hil.profiles import get_profile
+
+    profile = get_profile(s.string("profile", "native"))
+    options = None
+    if profile.parse_options is not None:
+        sub = s.sub(profile.name)
+        options = profile.parse_options(sub)
+        sub.finish()
     d = DriveConfig(
-        profile=s.string("profile", "native", DRIVE_PROFILES),
+        profile=profile.name,
         node_id=s.integer("node_id", 1, low=0, high=127),
         bitrate_bps=s.integer("bitrate_bps", 1_000_000, low=10_000, high=8_000_000),
         current_limit_A=s.number("current_limit_A", 0.7, positive=True),
@@ -521,6 +533,7 @@ def _parse_drive(s: _Section) -> DriveConfig:
         encoder_bits=s.integer("encoder_bits", 32, low=8, high=32),
         watchdog_periods=s.integer("watchdog_periods", 10, low=1, high=100_000),
         feedback_timeout_periods=s.integer("feedback_timeout_periods", 10, low=1, high=100_000),
+        options=options,
     )
     if d.current_limit_A / d.dac_lsb_A > 32767:
         raise ConfigError(

@@ -22,9 +22,12 @@ def write_design_outputs(
     from dob_hil.design import design_with_diagnostics
     from dob_hil.design.analysis import analyze
     from dob_hil.design.report import format_report
-    from dob_hil.link.busload import check_bus_load
+    from dob_hil.link.busload import refuse_overload
+    from dob_hil.profiles import get_profile
 
-    load = check_bus_load(config.drive, config.plant.period_ns)  # refuses a load above 100 %
+    profile = get_profile(config.drive.profile)
+    profile.check_period(config.plant.period_ns)
+    load = refuse_overload(profile.bus_load(config))  # refuses a load above 100 %
     result = design_with_diagnostics(config)
     analysis = analyze(result, config)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -56,13 +56,17 @@ EventHook = Callable[[LinkEvent], None]
 
 
 class DriveLink(Protocol):
-    """One drive on one bus, as the loop sees it. Implementations: ``native.NativeDriveLink``."""
+    """One drive on one bus, as the loop sees it. Implementations: one per profile (``dob_hil.profiles``)."""
 
     @property
     def current_limit_A(self) -> float: ...
 
     def enable(self, timeout_ns: int) -> None:
         """Ask the drive to enable; raise :class:`~dob_hil.errors.DriveFault` if it does not."""
+
+    def enable_lockstep(self, service: Callable[[], int], max_rounds: int = 3) -> None:
+        """Enable against the embedded lockstep drive, which acts only when ``service()`` is
+        called (in this thread); raise :class:`~dob_hil.errors.DriveFault` if it does not."""
 
     def receive_feedback(self, timeout_ns: int) -> Feedback | None:
         """The next valid feedback of our drive, or None after ``timeout_ns``.

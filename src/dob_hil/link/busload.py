@@ -72,30 +72,27 @@ class BusLoad:
         return "\n".join(lines)
 
 
-def worst_case_bus_load(
-    drive: DriveConfig, period_ns: int, *, heartbeat_hz: float = DEFAULT_HEARTBEAT_HZ
+def cyclic_bus_load(
+    bitrate_bps: int,
+    period_ns: int,
+    frames: dict[str, tuple[int, float]],
+    *,
+    heartbeat_hz: float = 0.0,
+    extended_id: bool = False,
 ) -> BusLoad:
-    """Worst-case bus load of one FEEDBACK + one COMMAND per period plus the heartbeat."""
+    """Worst-case load of a profile's cyclic traffic: ``frames`` maps a frame's name to
+    (data bytes, frames per period). ``heartbeat_hz`` is only recorded (count the heartbeat in
+    ``frames`` as ``heartbeat_hz * period`` per period)."""
     if isinstance(period_ns, bool) or not isinstance(period_ns, int) or period_ns <= 0:
         raise ConfigError("plant.period_us", f"the control period must be > 0 ns, got {period_ns!r}")
-    if drive.bitrate_bps <= 0:
-        raise ConfigError("drive.bitrate_bps", f"must be > 0, got {drive.bitrate_bps}")
-    if not heartbeat_hz >= 0.0:
-        raise ConfigError("heartbeat_hz", f"must be >= 0, got {heartbeat_hz}")
-    bits = {
-        FrameKind.FEEDBACK.name: frame_bits(DLC[FrameKind.FEEDBACK]),
-        FrameKind.COMMAND.name: frame_bits(DLC[FrameKind.COMMAND]),
-        FrameKind.HEARTBEAT.name: frame_bits(DLC[FrameKind.HEARTBEAT]),
-    }
-    per_period = {
-        FrameKind.FEEDBACK.name: 1.0,
-        FrameKind.COMMAND.name: 1.0,
-        FrameKind.HEARTBEAT.name: heartbeat_hz * period_ns * 1e-9,
-    }
+    if bitrate_bps <= 0:
+        raise ConfigError("drive.bitrate_bps", f"must be > 0, got {bitrate_bps}")
+    bits = {name: frame_bits(n_bytes, extended_id=extended_id) for name, (n_bytes, _) in frames.items()}
+    per_period = {name: per for name, (_, per) in frames.items()}
     total_bits = sum(bits[name] * per_period[name] for name in bits)
-    time_us = total_bits * 1e6 / drive.bitrate_bps
+    time_us = total_bits * 1e6 / bitrate_bps
     return BusLoad(
-        bitrate_bps=drive.bitrate_bps,
+        bitrate_bps=bitrate_bps,
         period_ns=period_ns,
         heartbeat_hz=heartbeat_hz,
         frame_bits=bits,
@@ -106,6 +103,35 @@ def worst_case_bus_load(
     )
 
 
+def worst_case_bus_load(
+    drive: DriveConfig, period_ns: int, *, heartbeat_hz: float = DEFAULT_HEARTBEAT_HZ
+) -> BusLoad:
+    """Worst-case bus load of one FEEDBACK + one COMMAND per period plus the heartbeat."""
+    if isinstance(period_ns, bool) or not isinstance(period_ns, int) or period_ns <= 0:
+        raise ConfigError("plant.period_us", f"the control period must be > 0 ns, got {period_ns!r}")
+    if not heartbeat_hz >= 0.0:
+        raise ConfigError("heartbeat_hz", f"must be >= 0, got {heartbeat_hz}")
+    frames = {
+        FrameKind.FEEDBACK.name: (DLC[FrameKind.FEEDBACK], 1.0),
+        FrameKind.COMMAND.name: (DLC[FrameKind.COMMAND], 1.0),
+        FrameKind.HEARTBEAT.name: (DLC[FrameKind.HEARTBEAT], heartbeat_hz * period_ns * 1e-9),
+    }
+    return cyclic_bus_load(drive.bitrate_bps, period_ns, frames, heartbeat_hz=heartbeat_hz)
+
+
+def refuse_overload(load: BusLoad, *, max_fraction: float = 1.0) -> BusLoad:
+    """``load``, or a ConfigError naming the load, the bitrate and the period above ``max_fraction``."""
+    if load.fraction > max_fraction:
+        raise ConfigError(
+            "drive.bitrate_bps",
+            f"worst-case bus load {load.percent:.0f}% > {100.0 * max_fraction:.0f}% at "
+            f"{load.bitrate_bps} bit/s and period {load.period_ns / 1000:g} us "
+            f"({load.bits_per_period:.1f} bit = {load.time_per_period_us:.1f} us per period); "
+            "raise the bitrate or the period",
+        )
+    return load
+
+
 def check_bus_load(
     drive: DriveConfig,
     period_ns: int,
@@ -114,13 +140,5 @@ def check_bus_load(
     max_fraction: float = 1.0,
 ) -> BusLoad:
     """:func:`worst_case_bus_load`, refusing a load above ``max_fraction`` with a ConfigError."""
-    load = worst_case_bus_load(drive, period_ns, heartbeat_hz=heartbeat_hz)
-    if load.fraction > max_fraction:
-        raise ConfigError(
-            "drive.bitrate_bps",
-            f"worst-case bus load {load.percent:.0f}% > {100.0 * max_fraction:.0f}% at "
-            f"{drive.bitrate_bps} bit/s and period {period_ns / 1000:g} us "
-            f"({load.bits_per_period:.1f} bit = {load.time_per_period_us:.1f} us per period); "
-            "raise the bitrate or the period",
-        )
-    return load
+    return refuse_overload(worst_case_bus_load(drive, period_ns, heartbeat_hz=heartbeat_hz),
+                           max_fraction=max_fraction)  # fmt: skip

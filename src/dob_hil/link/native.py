@@ -631,6 +631,16 @@ class NativeDriveLink:
                 if time.monotonic_ns() >= deadline_ns:
                     raise self._not_enabled(timeout_ns) from None
 
+    def enable_lockstep(self, service: Callable[[], int], max_rounds: int = 3) -> None:
+        """Enable against a drive serviced in this thread (the embedded lockstep drive):
+        ``service()`` lets the drive act on the request between polls; DriveFault if it does not."""
+        self.request_enable()
+        for _ in range(max_rounds):
+            service()
+            if self.poll_enabled():
+                return
+        raise DriveFault(f"node {self._node}: the simulated drive did not report enabled")
+
     def request_clear_fault(self) -> None:
         """Send CONTROL clear-fault; the drive reports its new state in a heartbeat."""
         self._send_control(ControlRequest.CLEAR_FAULT)

@@ -30,14 +30,13 @@ from dob_hil.design import Design, build_design
 from dob_hil.errors import DobHilError, DriveFault
 from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
-from dob_hil.link.busload import check_bus_load
-from dob_hil.link.native import NativeDriveLink
-from dob_hil.link.protocol import DriveState
+from dob_hil.link.busload import refuse_overload
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
+from dob_hil.profiles import Clocking, DriveProfile, SimulatedCounterpart, get_profile
 
 _channel_counter = itertools.count()
 EMBEDDED_RT_SWITCH_INTERVAL_S = 100e-6
@@ -173,7 +172,9 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     """Run one session; raises DobHilError subclasses for bad input, after stopping safely."""
     dob_enabled = config.run.dob_enabled if options.dob_enabled is None else options.dob_enabled
     design = build_design(config, dob_enabled=dob_enabled)
-    check_bus_load(config.drive, config.plant.period_ns)
+    profile = get_profile(config.drive.profile)
+    profile.check_period(config.plant.period_ns)
+    refuse_overload(profile.bus_load(config))
     duration_s = options.duration_s if options.duration_s is not None else config.run.duration_s
     if not duration_s > 0:
         raise DobHilError(f"--duration: must be > 0 s, got {duration_s}")
@@ -215,12 +216,13 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
         metadata={"run": run_meta, "versions": versions_metadata()},
         attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
     ) as log:
-        return _run_with_log(config, options, design, step, reference, log, log_path, mode, n_samples,
-                             dob_enabled, external_bus)  # fmt: skip
+        return _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
+                             n_samples, dob_enabled, external_bus)  # fmt: skip
 
 
 def _run_with_log(
     config: Config,
+    profile: DriveProfile,
     options: RunOptions,
     design: Design,
     step: Any,
@@ -232,8 +234,6 @@ def _run_with_log(
     dob_enabled: bool,
     external_bus: bool,
 ) -> RunSummary:
-    from firmware_sim import SimulatedDrive
-
     event_counts: dict[str, int] = {}
 
     def on_event(ev: LinkEvent) -> None:
@@ -244,23 +244,20 @@ def _run_with_log(
         log.event(ev.time_ns, level, ev.kind.value, ev.message)
 
     drive_bus: can.BusABC | None = None
-    drive: Any = None
+    drive: SimulatedCounterpart | None = None
     if external_bus:
         host_bus = open_bus(options.interface, options.channel, options.bitrate)
     else:
         channel = f"dob-hil-{os.getpid()}-{next(_channel_counter)}"
         host_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         drive_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        drive = SimulatedDrive(
-            drive_bus,
-            config,
-            clock="realtime" if options.realtime else "lockstep",
-            truth_sink=_truth_sink(log),
+        drive = profile.make_sim(
+            drive_bus, config, "realtime" if options.realtime else "lockstep", _truth_sink(log)
         )
     frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
     if options.bus_wrapper is not None:
         host_bus = options.bus_wrapper(host_bus)
-    link = NativeDriveLink(host_bus, config.drive, frame_hook=frame_hook, event_hook=on_event, owns_bus=True)
+    link = profile.make_link(host_bus, config, frame_hook, on_event)
     cycle = ControlCycle(
         step,
         reference,
@@ -293,15 +290,12 @@ def _run_with_log(
         with _signals(flag):
             log.event(time.monotonic_ns(), "info", "run_start", f"{mode} run of {n_samples} samples")
             if mode == "lockstep":
-                link.request_enable()
-                for _ in range(3):
-                    drive.service()
-                    if link.poll_enabled():
-                        break
-                else:
-                    raise DriveFault("the simulated drive did not report enabled")
+                assert drive is not None
+                link.enable_lockstep(drive.service)
                 exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
             else:
+                if profile.clocking is not Clocking.DRIVE:
+                    raise DobHilError(f"the {profile.name} profile has no real-time runner yet")
                 if drive is not None:
                     # the embedded drive's threads share this process's GIL with the loop: hand
                     # it over every 100 us instead of 5 ms (timing stays indicative only; a drive
@@ -331,7 +325,7 @@ def _run_with_log(
                 # a stop that never arrived (bus off): the drive's own clock runs on until its
                 # watchdog trips, as it would on hardware; the log's truth channel shows it
                 for _ in range(config.drive.watchdog_periods + 1):
-                    if drive.state is not DriveState.ENABLED:
+                    if not drive.enabled:
                         break
                     drive.advance_period()
             else:
