@@ -22,6 +22,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "analyze": ("dob_hil.commands.analyze", "metrics and plots from MCAP logs"),
     "replay": ("dob_hil.commands.replay", "re-run, re-design or re-send a logged run"),
     "export": ("dob_hil.commands.export", "write a log's frames as BLF/ASC/CSV"),
+    "doctor": ("dob_hil.commands.doctor", "check the CAN interface and the host before a real-time run"),
 }
 
 
@@ -101,11 +102,22 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
             "tx (our commands: a live drive on that bus would act on them!), or both (default)",
         )
         p.add_argument("--json", action="store_true", help="print the result as JSON")
+    elif name == "doctor":
+        _add_doctor_arguments(p)
     elif name == "export":
         p.add_argument("log", help="MCAP log")
         p.add_argument("--format", required=True, choices=("blf", "asc", "csv"))
         p.add_argument("--out", help="output path (default: beside the log)")
         p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
+
+
+def _add_doctor_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", help="config or scenario whose drive.bitrate_bps to expect")
+    add_bus_arguments(p)
+    p.add_argument("--data-bitrate", type=int, help="CAN FD data bitrate to expect, bit/s")
+    p.add_argument("--json", action="store_true", help="print the checks as JSON")
+    p.add_argument("--ip-link-file", help="check recorded 'ip -details -statistics link show DEV' output")
+    p.add_argument("--ethtool-file", help="with --ip-link-file: recorded 'ethtool -T DEV' output")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
