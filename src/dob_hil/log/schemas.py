@@ -53,6 +53,8 @@ CAN_FLAG_EXTENDED: Final = 1 << 0
 CAN_FLAG_ERROR: Final = 1 << 1
 CAN_FLAG_REMOTE: Final = 1 << 2
 CAN_FLAG_FD: Final = 1 << 3
+CAN_FLAG_BRS: Final = 1 << 4  # CAN FD bit rate switch
+CAN_FLAG_ESI: Final = 1 << 5  # CAN FD error state indicator
 CAN_RX: Final = 0
 CAN_TX: Final = 1
 
@@ -171,7 +173,12 @@ def can_fields(data_bytes: int = CAN_DATA_BYTES) -> tuple[Field, ...]:
         Field("arbitration_id", "uint32"),
         Field("direction", "uint8", None, "0 rx, 1 tx"),
         Field("dlc", "uint8", None, "data length in bytes"),
-        Field("flags", "uint8", None, "bit0 extended, bit1 error frame, bit2 remote, bit3 fd"),
+        Field(
+            "flags",
+            "uint8",
+            None,
+            "bit0 extended, bit1 error frame, bit2 remote, bit3 fd, bit4 brs, bit5 esi",
+        ),
         Field("data", "uint8", data_bytes, "zero padded"),
     )
 
