@@ -101,6 +101,15 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
             help="--to-bus: which recorded frames to send: rx (the drive's, to stand in for it), "
             "tx (our commands: a live drive on that bus would act on them!), or both (default)",
         )
+        p.add_argument("--sched-fifo", action="store_true", help="--to-bus: SCHED_FIFO where permitted")
+        p.add_argument("--cpu", type=int, action="append", help="--to-bus: pin the sender to this CPU")
+        p.add_argument("--freeze-gc", action="store_true", help="--to-bus: gc.freeze() and gc.disable()")
+        p.add_argument(
+            "--no-spin",
+            action="store_true",
+            help="--to-bus: sleep to each deadline without spinning the last 150 us (gentler on a "
+            "shared CPU, later frames)",
+        )
         p.add_argument("--json", action="store_true", help="print the result as JSON")
     elif name == "doctor":
         _add_doctor_arguments(p)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -107,15 +108,27 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
     if len(frames) + len(fd) == 0:
         print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
+    from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
+
+    rt = RtSettings(
+        sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
+    )
     bus = open_bus(args.interface, args.channel, args.bitrate)
+    cpus_before = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    report = apply_rt_settings(rt)
+    for refused in report.refused:
+        print(f"dob-hil replay: warning: {refused}", file=sys.stderr)
     try:
         print(
             f"dob-hil replay: sending {len(frames) + len(fd)} recorded frames onto "
             f"{bus.channel_info} with their original timing",
             file=sys.stderr,
         )
-        stats = play_frames(bus, frames, fd)
+        stats = play_frames(bus, frames, fd, spin_ns=0 if args.no_spin else 150_000)
     finally:
+        restore_rt_settings(rt)
+        if cpus_before is not None and rt.cpus:
+            os.sched_setaffinity(0, cpus_before)
         bus.shutdown()
     d = stats.to_dict()
     if args.json:
@@ -128,6 +141,12 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
             f"max {lat.get('max', 0):.1f} us; {stats.late_frames} more than "
             f"{stats.late_threshold_us:g} us late"
         )
+        if stats.recorded_gap_us and stats.sent_gap_us:
+            rec, sent = stats.recorded_gap_us, stats.sent_gap_us
+            print(
+                f"  id 0x{stats.gap_id:X} gap: recorded p50 {rec['p50']:.1f} us p99 {rec['p99']:.1f} us; "
+                f"sent p50 {sent['p50']:.1f} us p99 {sent['p99']:.1f} us"
+            )
         if stats.skipped_error_frames or stats.skipped_own_echoes:
             print(
                 f"  skipped: {stats.skipped_error_frames} error frames, "
