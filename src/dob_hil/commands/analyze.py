@@ -71,8 +71,10 @@ def analyze_logs(
     written: list[Path] = []
     if plots:
         from dob_hil.analysis.plots import PlotInput, write_plots
+        from dob_hil.commands.paths import ensure_dir
 
         out_dir = plots_dir if plots_dir is not None else default_plots_dir(paths)
+        ensure_dir(out_dir, "--plots")
         written = write_plots(
             [PlotInput(log, sig) for log, sig in zip(logs, signals, strict=True)], out_dir, from_s=from_s
         )

@@ -14,11 +14,11 @@ from dob_hil.scenarios import scenario_path
 
 
 def main(args: argparse.Namespace) -> int:
+    from dob_hil.commands.paths import ensure_dir
     from dob_hil.commands.run import format_summary
     from dob_hil.loop.session import RunOptions, run_session
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_dir(Path(args.out), "--out")
     config = load_config(scenario_path(args.scenario))
     print(f"== design: {config.name}")
     from dob_hil.commands.design import write_design_outputs
