@@ -145,7 +145,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         module = import_module(args._module)
         run: Callable[[argparse.Namespace], int] = module.main
-        return run(args)
+        status = run(args)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+        return status
     except DobHilError as exc:
         print(f"dob-hil {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -62,6 +62,10 @@ def analyze_logs(
     if not (math.isfinite(from_s) and from_s >= 0.0):
         raise ConfigError("--from", f"must be a number of seconds >= 0, got {from_s}")
     paths = [Path(p) for p in paths]
+    if plots:  # refused before any log is read
+        from dob_hil.commands.paths import ensure_dir
+
+        ensure_dir(plots_dir if plots_dir is not None else default_plots_dir(paths), "--plots")
     logs = [load_log(p, fields=ANALYSIS_FIELDS) for p in paths]
     signals = [derive_signals(log) for log in logs]
     results = [_clean(compute_metrics(log, from_s, sig)) for log, sig in zip(logs, signals, strict=True)]
@@ -71,10 +75,7 @@ def analyze_logs(
     written: list[Path] = []
     if plots:
         from dob_hil.analysis.plots import PlotInput, write_plots
-        from dob_hil.commands.paths import ensure_dir
-
         out_dir = plots_dir if plots_dir is not None else default_plots_dir(paths)
-        ensure_dir(out_dir, "--plots")
         written = write_plots(
             [PlotInput(log, sig) for log, sig in zip(logs, signals, strict=True)], out_dir, from_s=from_s
         )
