@@ -672,6 +672,18 @@ def _parse_plant(s: _Section) -> PlantConfig:
             raise ConfigError(s.name(key), f"expected {count} names, got {len(names)}")
     input_unit: str = s.get("input_unit")
     output_unit: str = s.get("output_unit")
+    for key, values in (
+        ("state_names", state_names),
+        ("input_names", input_names),
+        ("output_names", output_names),
+        ("input_unit", (input_unit,)),
+        ("output_unit", (output_unit,)),
+    ):
+        for value in values:
+            if "$" in value:  # plot labels would parse it as mathtext ("$\frac{$" crashes it)
+                raise ConfigError(
+                    s.name(key), f"contains '$' (plot labels read it as math); got {_short_str(value)}"
+                )
     s.finish()
     return PlantConfig(
         A, B, C, period_ns, delay, state_names, input_names, output_names, input_unit, output_unit

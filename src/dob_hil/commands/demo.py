@@ -1,7 +1,8 @@
 """``dob-hil demo``: the paper's example end to end on the embedded simulated drive.
 
 Designs the controller (report and plots), runs the scenario in lockstep with and without the
-disturbance observer, and analyses the two logs side by side (metrics table and plots).
+disturbance observer, and analyses the two logs side by side: the metrics table (printed and
+written to ``demo-<name>-comparison.txt``) and the plots (``demo-<name>-plots/``).
 """
 
 from __future__ import annotations
@@ -39,5 +40,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"\n== analysis: {logs[0].name} vs {logs[1].name}")
     from dob_hil.commands.analyze import analyze_logs
 
-    analyze_logs(logs, from_s=0.1, plots_dir=out / f"demo-{config.name}-plots", as_json=False)
+    table = out / f"demo-{config.name}-comparison.txt"
+    analyze_logs(
+        logs, from_s=0.1, plots_dir=out / f"demo-{config.name}-plots", as_json=False, table_path=table
+    )
+    print(f"comparison table: {table}")
     return 0
