@@ -128,7 +128,8 @@ def analyze_logs(
         metrics["plots"] = [str(p) for p in written]
     if as_json:
         print(json.dumps(results, indent=1, allow_nan=False))
-    table = format_table(results, [log.label for log in logs])
+    units = {log.design.output_unit for log in logs if log.design is not None}
+    table = format_table(results, [log.label for log in logs], units.pop() if len(units) == 1 else "")
     if table_path is not None:  # the comparison table as a file too (dob-hil demo)
         table_path.write_text(table + "\n", encoding="utf-8")
     if not as_json:
