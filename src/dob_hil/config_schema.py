@@ -265,8 +265,8 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "bridges; beyond, the command is zero.", unit="periods", default=3, low=0, high=1000),
         _f("sched_fifo", "boolean", "Real time: run the loop under SCHED_FIFO where permitted.",
            default=False),
-        _f("cpu_affinity", "integers", "Real time: CPUs to pin the loop to; each must be one this "
-           "process may use."),
+        _f("cpu_affinity", "integers", "Real time: CPUs to pin the loop to; `dob-hil run` checks "
+           "that each is one it may use on the machine it runs on.", low=0, high=4095),
         _f("freeze_gc", "boolean", "Real time: gc.freeze() and gc.disable() during the run.",
            default=False),
     )),

@@ -456,6 +456,18 @@ def test_bad_run_options_are_one_line(
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_a_config_cpu_this_machine_lacks_is_refused_by_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "cpu.toml"
+    path.write_text(_edit("dob_enabled = true", "dob_enabled = true\ncpu_affinity = [4095]"))
+    rc = cli.main(["run", str(path), "--no-progress", "--log", str(tmp_path / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("dob-hil run: error: run.cpu_affinity: CPU 4095 is not one"), err
+    assert not (tmp_path / "x.mcap").exists()
+    parse_config(tomllib.loads(path.read_text()))  # a log's copy still parses on any machine
+
+
 def test_an_unwritable_log_folder_is_refused_before_the_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

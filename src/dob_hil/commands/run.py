@@ -59,6 +59,8 @@ def check_run_arguments(args: argparse.Namespace, config: Config) -> None:
         check_value("run", "duration_s", args.duration, "--duration")
     if args.cpu:
         check_cpus(args.cpu, "--cpu")
+    elif config.run.cpu_affinity:  # the config's CPUs, on the machine that runs it
+        check_cpus(config.run.cpu_affinity, "run.cpu_affinity")
     if args.log:
         ensure_file_parent(Path(args.log), "--log")
     else:
