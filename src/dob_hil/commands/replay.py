@@ -20,9 +20,12 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dob_hil.analysis.loaded import LoadedLog, load_log
+
+if TYPE_CHECKING:
+    from dob_hil.design import Design
 
 
 def _warn(log: LoadedLog) -> None:
@@ -57,12 +60,8 @@ def _verify(log: LoadedLog, as_json: bool) -> int:
 def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     from dob_hil.analysis.replay import redesign
     from dob_hil.analysis.replay_plot import plot_redesign
-    from dob_hil.config import load_config
-    from dob_hil.design import build_design
-    from dob_hil.scenarios import resolve_config_path
 
-    config = load_config(resolve_config_path(other))
-    design = build_design(config, dob_enabled=log.dob_enabled)
+    design = load_other_design(other, log.dob_enabled)
     result = redesign(log, design)
     plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")
     assert result.rerun is not None
@@ -95,6 +94,33 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
             print(f"  note: {note}")
         print(f"  plot: {plot_path}")
     return 0
+
+
+def load_other_design(other: str, dob_enabled: bool) -> Design:
+    """``--design OTHER``: a design file written by ``dob-hil design`` (JSON), or a config (a TOML
+    path or a shipped scenario name) designed here. Either must be stable with the log's DOB
+    setting."""
+    from dob_hil.config import load_config
+    from dob_hil.design import Design, build_design
+    from dob_hil.scenarios import resolve_config_path
+
+    path = Path(other)
+    if path.is_file() and _looks_like_json(path):
+        design = Design.load(path)
+        design.require_stable(dob_enabled)
+        return design
+    return build_design(load_config(resolve_config_path(other)), dob_enabled=dob_enabled)
+
+
+def _looks_like_json(path: Path) -> bool:
+    if path.suffix.lower() == ".json":
+        return True
+    try:
+        with path.open("rb") as f:
+            head = f.read(64).lstrip()
+    except OSError:
+        return False
+    return head.startswith(b"{")
 
 
 def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
