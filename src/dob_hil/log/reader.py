@@ -45,6 +45,7 @@ from dob_hil.log.schemas import (
     LogLayout,
     SchemaError,
     channel_specs,
+    decode_event_cdr,
     msg_dtype,
     parse_msg,
 )
@@ -178,6 +179,7 @@ class _Reader:
         self.warnings = self.fmap.warnings
         self.dctx = zstandard.ZstdDecompressor()
         self.first_data: tuple[ChunkRef, bytes] | None = None
+        self.event_json = False
 
     # ------------------------------------------------------------------ top level
     def read(self) -> LogData:
@@ -283,8 +285,9 @@ class _Reader:
         for channel in self.fmap.channels.values():
             if self.topics is not None and channel.topic not in self.topics:
                 continue
-            if channel.topic == TOPIC_EVENT and channel.message_encoding == "json":
+            if channel.topic == TOPIC_EVENT and channel.message_encoding in ("json", "cdr"):
                 event_channel = channel.id
+                self.event_json = channel.message_encoding == "json"  # format 1 logs
                 continue
             if channel.topic not in FIXED_TOPICS:
                 continue
@@ -546,10 +549,11 @@ class _Reader:
         for offset, length in zip(
             table.offsets[select].tolist(), table.lengths[select].tolist(), strict=True
         ):
+            payload = buf[offset + MESSAGE_RECORD_OVERHEAD : offset + 9 + length]
             try:
-                event = json.loads(buf[offset + MESSAGE_RECORD_OVERHEAD : offset + 9 + length])
-            except ValueError as exc:
-                self.warnings.append(f"{TOPIC_EVENT}: a message is not JSON ({exc}); skipped")
+                event = json.loads(payload) if self.event_json else decode_event_cdr(payload)
+            except (ValueError, RecursionError) as exc:
+                self.warnings.append(f"{TOPIC_EVENT}: a message is not an event ({exc}); skipped")
                 continue
             if isinstance(event, dict):
                 events.append(event)
