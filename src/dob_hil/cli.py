@@ -61,6 +61,7 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--no-dob", action="store_true", help="switch the disturbance observer off")
         p.add_argument("--duration", type=float, help="run length in seconds")
         p.add_argument("--log", help="MCAP log path (default: logs/<name>-<time>.mcap)")
+        p.add_argument("--no-log", action="store_true", help="run without a log file (quick runs, campaigns)")
         p.add_argument(
             "--realtime",
             action="store_true",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -75,6 +76,8 @@ def main(args: argparse.Namespace) -> int:
     from dob_hil.loop.session import RunOptions, run_session
 
     config = load_run_config(args)
+    if args.no_log and args.log:
+        raise ConfigError("--no-log", "give --log PATH or --no-log, not both")
     bar = ProgressBar(
         f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
     )
@@ -84,7 +87,7 @@ def main(args: argparse.Namespace) -> int:
         bitrate=args.bitrate,
         dob_enabled=False if args.no_dob else None,
         duration_s=args.duration,
-        log_path=Path(args.log) if args.log else None,
+        log_path=Path(os.devnull) if args.no_log else (Path(args.log) if args.log else None),
         realtime=args.realtime,
         rt=RtSettings(
             sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
