@@ -1,7 +1,7 @@
 """Crash safety: after kill -9 of the whole process group the log reads as an exact prefix of what
 was logged (how much is lost under load is a benchmark figure: benchmarks/bench_logging.py
---kill); a vanished parent leaves a finished file. A child process runs a 3.33 kHz loop that logs every period and reports
-how many samples it has handed to sample() through a shared 16-byte file."""
+--kill); a vanished parent leaves a finished file. A child process runs a 3.33 kHz loop that logs
+every period and reports how many samples it has handed to sample() through a shared 16-byte file."""
 
 from __future__ import annotations
 
