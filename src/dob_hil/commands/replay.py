@@ -97,7 +97,7 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
 
 
 def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
-    from dob_hil.analysis.playback import play_frames
+    from dob_hil.analysis.playback import check_gaps, play_frames
     from dob_hil.link.bus import open_bus
 
     frames, fd = log.data.frames, log.data.fd_frames
@@ -107,6 +107,7 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
     if len(frames) + len(fd) == 0:
         print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
+    check_gaps(frames, fd)  # before the bus is opened: a damaged log sends nothing
     bus = open_bus(args.interface, args.channel, args.bitrate)
     try:
         print(

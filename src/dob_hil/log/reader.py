@@ -56,7 +56,14 @@ except ImportError:  # pragma: no cover
     _lz4_frame = None
 
 GROUP_BYTES: Final = 8 << 20
-MAX_CHUNK_BYTES: Final = 1 << 30  # a larger uncompressed size is a corrupted field
+# What a chunk may claim, decompressed: at most MAX_CHUNK_BYTES, and at most MAX_CHUNK_RATIO times
+# its compressed size (at least MIN_CHUNK_CLAIM_BYTES): a crafted 37 KB file cannot make the reader
+# allocate gigabytes (a zstd frame of zeros expands 32000-fold). The writer's chunks are 256 KiB
+# and compress 2-3 fold.
+MAX_CHUNK_BYTES: Final = 64 << 20
+MAX_CHUNK_RATIO: Final = 256
+MIN_CHUNK_CLAIM_BYTES: Final = 1 << 20
+READ_AHEAD_BYTES: Final = 32 << 20  # decompressed bytes in flight at most (and one chunk)
 FIXED_TOPICS: Final = (TOPIC_SAMPLE, TOPIC_CAN, TOPIC_CAN_FD, TOPIC_TRUTH)
 _HEADER_DTYPE: Final = np.dtype(
     {
@@ -328,19 +335,26 @@ class _Reader:
     ) -> bytes | None:
         if self.first_data is not None and self.first_data[0] is chunk:
             return self.first_data[1]
-        raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
         where = f"chunk at byte {chunk.offset}"
-        if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        if chunk.uncompressed_size > chunk_claim_limit(chunk.data_length):
             if warn:
-                self.warnings.append(f"{where}: implausible size {chunk.uncompressed_size}; chunk skipped")
+                self.warnings.append(
+                    f"{where}: implausible uncompressed size {chunk.uncompressed_size} for "
+                    f"{chunk.data_length} compressed bytes; chunk skipped"
+                )
             return None
+        raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
         try:
             if chunk.compression == "zstd":
+                declared = zstandard.frame_content_size(raw)
+                if declared > chunk.uncompressed_size:
+                    raise ValueError(f"its zstd frame declares {declared} bytes")
+                # without a declared size, max_output_size bounds what is allocated
                 data = (dctx or self.dctx).decompress(raw, max_output_size=chunk.uncompressed_size)
             elif chunk.compression == "":
                 data = raw
             elif chunk.compression == "lz4" and _lz4_frame is not None:
-                data = _lz4_frame.decompress(raw)
+                data = _lz4_frame.LZ4FrameDecompressor().decompress(raw, max_length=chunk.uncompressed_size)
             else:
                 if warn:
                     self.warnings.append(
@@ -368,7 +382,9 @@ class _Reader:
         """Every chunk decompressed and checked, in file order, by a small thread pool.
 
         zstd and crc32 release the GIL, so a second core nearly halves the read time. At most
-        ``_READ_AHEAD`` chunks are in flight, so memory stays bounded for any file size.
+        ``_READ_AHEAD`` chunks and ``READ_AHEAD_BYTES`` (decompressed, as the chunks declare them,
+        each already bounded by :func:`chunk_claim_limit`) are in flight, so memory stays bounded
+        for any file, hostile ones included.
         """
         chunks = self.fmap.chunks
         if len(chunks) < 4:
@@ -385,12 +401,15 @@ class _Reader:
 
         with ThreadPoolExecutor(max_workers=_READ_THREADS) as pool:
             pending: deque[tuple[ChunkRef, Future[bytes | None]]] = deque()
-            it = iter(chunks)
-            for chunk in it:
-                pending.append((chunk, pool.submit(work, chunk)))
-                if len(pending) >= _READ_AHEAD:
+            in_flight = 0
+            for chunk in chunks:
+                claim = min(chunk.uncompressed_size, MAX_CHUNK_BYTES)
+                while pending and (len(pending) >= _READ_AHEAD or in_flight + claim > READ_AHEAD_BYTES):
                     done, fut = pending.popleft()
+                    in_flight -= min(done.uncompressed_size, MAX_CHUNK_BYTES)
                     yield done, fut.result()
+                pending.append((chunk, pool.submit(work, chunk)))
+                in_flight += claim
             while pending:
                 done, fut = pending.popleft()
                 yield done, fut.result()
@@ -557,6 +576,11 @@ class _Reader:
                 continue
             if isinstance(event, dict):
                 events.append(event)
+
+
+def chunk_claim_limit(compressed_bytes: int) -> int:
+    """The largest uncompressed size a chunk of ``compressed_bytes`` may declare (see MAX_CHUNK_*)."""
+    return min(MAX_CHUNK_BYTES, max(MIN_CHUNK_CLAIM_BYTES, MAX_CHUNK_RATIO * compressed_bytes))
 
 
 @dataclass(slots=True)
