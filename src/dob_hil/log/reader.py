@@ -168,6 +168,41 @@ def read_log(
         mm.close()
 
 
+def iter_channel(
+    path: Path | str, topic: str, fields: Iterable[str] | None = None, *, verify_crc: bool = True
+) -> Iterator[StructArray]:
+    """The messages of one fixed-size channel, block by block (one block per ~8 MiB of chunks).
+
+    Memory stays bounded whatever the log's length: only one group of chunks and its block are
+    held at a time. Warnings about damage are not reported here (read them with
+    :func:`read_log` restricted to the events, which maps the whole file cheaply).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            if f.seek(0, 2) == 0:
+                raise LogReadError(f"{path}: empty file, not an MCAP log")
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except OSError as exc:
+        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    try:
+        keep = None if fields is None else {topic: tuple(fields)}
+        reader = _Reader(mm, str(path), {topic}, verify_crc, keep)
+        reader._learn_channels()
+        layout = reader._layout()
+        fixed, _ = reader._outputs(layout)
+        for group in reader._groups():
+            table = reader._table(group)
+            for out in fixed.values():
+                out.out, out.filled = out.out[:0], 0  # a fresh array per block
+                reader._gather_fixed(group, table, out)
+                if out.filled:
+                    yield out.out[: out.filled]
+            reader._release(group)
+    finally:
+        mm.close()
+
+
 class _Reader:
     def __init__(
         self,
@@ -611,4 +646,4 @@ def _spec_dtype(fields: Any) -> np.dtype[np.void]:
     return msg_dtype(fields)
 
 
-__all__ = ["LogData", "read_log"]
+__all__ = ["LogData", "iter_channel", "read_log"]
