@@ -73,6 +73,7 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument(
             "--log", help="MCAP log path (default: <run.log_dir>/<name>-<dob|nodob>-<UTC time>.mcap)"
         )
+        p.add_argument("--no-log", action="store_true", help="run without a log file (quick runs, campaigns)")
         p.add_argument(
             "--realtime",
             action="store_true",

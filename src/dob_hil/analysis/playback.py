@@ -29,11 +29,12 @@ import numpy.typing as npt
 from dob_hil.analysis.bus_usage import counted_frames
 from dob_hil.analysis.frames import frame_messages
 from dob_hil.analysis.metrics import distribution
-from dob_hil.errors import DriveFault
+from dob_hil.errors import DriveFault, LogReadError
 from dob_hil.log.schemas import CAN_FLAG_ERROR
 
 StructArray = npt.NDArray[np.void]
 START_LEAD_NS = 5_000_000  # the first frame goes out this long after the start
+MAX_GAP_NS = 60_000_000_000  # a longer silence between two recorded frames is a damaged log
 
 
 @dataclass
@@ -62,6 +63,25 @@ def _set_timer_slack_1ns() -> None:
         pass
 
 
+def check_gaps(frames: StructArray, fd_frames: StructArray, max_gap_ns: int = MAX_GAP_NS) -> None:
+    """LogReadError naming the first gap of more than ``max_gap_ns`` between consecutive frames."""
+    stamps = np.sort(
+        np.concatenate(
+            [frames["timestamp_ns"].astype(np.uint64), fd_frames["timestamp_ns"].astype(np.uint64)]
+        )
+    )
+    if len(stamps) < 2:
+        return
+    gaps = np.diff(stamps)
+    at = np.flatnonzero(gaps > np.uint64(max_gap_ns))
+    if len(at):
+        i = int(at[0])
+        raise LogReadError(
+            f"replay --to-bus: frames {i} and {i + 1} (in time order) are {int(gaps[i]) / 1e9:.6g} s apart, "
+            f"more than the {max_gap_ns / 1e9:g} s a recording can hold; refusing to replay this log"
+        )
+
+
 def play_frames(
     bus: can.BusABC,
     frames: StructArray,
@@ -72,14 +92,17 @@ def play_frames(
     late_threshold_us: float = 1000.0,
     progress: Callable[[int, int], None] | None = None,
     spin_ns: int = 150_000,
+    max_gap_ns: int = MAX_GAP_NS,
 ) -> PlaybackStats:
     """Send the frames onto ``bus`` at their recorded relative times (module docstring).
-    Raises DriveFault when the bus refuses a frame."""
+    Raises DriveFault when the bus refuses a frame, LogReadError (before sending anything) when
+    two consecutive frames are more than ``max_gap_ns`` apart."""
     keep = counted_frames(frames) if len(frames) else np.zeros(0, dtype=bool)
     errors = int(np.count_nonzero((frames["flags"] & CAN_FLAG_ERROR) != 0))
     echoes = int(len(frames) - np.count_nonzero(keep) - errors)
     selected = frames[keep]
     fd = fd_frames if fd_frames is not None else frames[:0]
+    check_gaps(selected, fd, max_gap_ns)
     total = len(selected) + len(fd)
     _set_timer_slack_1ns()
     lateness: list[int] = []

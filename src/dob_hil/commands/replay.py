@@ -35,8 +35,10 @@ def _warn(log: LoadedLog) -> None:
 
 def _verify(log: LoadedLog, as_json: bool) -> int:
     from dob_hil.analysis.replay import verify
+    from dob_hil.analysis.verify_fast import verify_streaming
 
-    result = verify(log)
+    # streamed and vectorised (bounded memory); the chained re-run decides anything else
+    result = verify_streaming(log) or verify(load_log(log.path))
     if as_json:
         print(json.dumps({"mode": "verify", "log": str(log.path), **result.to_dict()}, indent=1))
     else:
@@ -124,7 +126,7 @@ def _looks_like_json(path: Path) -> bool:
 
 
 def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
-    from dob_hil.analysis.playback import play_frames
+    from dob_hil.analysis.playback import check_gaps, play_frames
     from dob_hil.link.bus import open_bus
 
     frames, fd = log.data.frames, log.data.fd_frames
@@ -134,6 +136,7 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
     if len(frames) + len(fd) == 0:
         print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
+    check_gaps(frames, fd)  # before the bus is opened: a damaged log sends nothing
     from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 
     rt = RtSettings(
@@ -182,6 +185,12 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.verify:  # the samples are streamed: read the events, metadata and attachments only
+        from dob_hil.log.schemas import TOPIC_EVENT
+
+        log = load_log(Path(args.log), topics=[TOPIC_EVENT])
+        _warn(log)
+        return _verify(log, args.json)
     log = load_log(Path(args.log))
     _warn(log)
     if args.verify:

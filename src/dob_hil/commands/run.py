@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from dob_hil.config import Config, load_config
@@ -74,6 +75,8 @@ def main(args: argparse.Namespace) -> int:
 
     config = load_run_config(args)
     check_run_arguments(args, config)
+    if args.no_log and args.log:
+        raise ConfigError("--no-log", "give --log PATH or --no-log, not both")
     bar = ProgressBar(
         f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
     )
@@ -83,7 +86,7 @@ def main(args: argparse.Namespace) -> int:
         bitrate=args.bitrate,
         dob_enabled=False if args.no_dob else None,
         duration_s=args.duration,
-        log_path=Path(args.log) if args.log else None,
+        log_path=Path(os.devnull) if args.no_log else (Path(args.log) if args.log else None),
         realtime=args.realtime,
         rt=RtSettings(
             sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
