@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dob_hil.errors import ConfigError
+from dob_hil.loop.envelope import SafetyConfig, parse_safety
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -395,6 +396,7 @@ class Config:
     run: RunConfig
     source: Path | None = None
     text: str = ""
+    safety: SafetyConfig = field(default_factory=SafetyConfig)  # [safety]: dob_hil.loop.envelope
 
 
 # ---------------------------------------------------------------------------------------------
@@ -433,8 +435,9 @@ def parse_config(data: Mapping[str, Any], source: Path | None = None, text: str 
     sim = _parse_sim(root.sub("sim"), plant)
     reference = _parse_reference(root.sub("reference"), base_dir)
     run = _parse_run(root.sub("run"))
+    safety = parse_safety(root.sub("safety"))
     root.finish()
-    return Config(name, plant, design, drive, sim, reference, run, source, text)
+    return Config(name, plant, design, drive, sim, reference, run, source, text, safety)
 
 
 def _parse_plant(s: _Section) -> PlantConfig:

@@ -14,22 +14,35 @@ instant comes about.
   follows the drive's clock with a slow first-order tracker (64 samples) so that drift between
   the two clocks does not accumulate; lateness is measured against it. Overruns (newer feedback
   already queued when one is read) skip ahead to the newest; gaps are filled with model-only
-  samples; every skip is counted and reported as an event (see :func:`run_realtime`).
+  samples; every skip is counted and reported as an event (see :func:`run_realtime`). The gap is
+  counted from the sequence number and, for gaps near or beyond its 8-bit range, from the time
+  since the last answered feedback (a host stall of 256 periods or more). Sample log times never
+  step back (a re-anchor that would move them back holds them at the last one).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from dob_hil.errors import DriveFault
 from dob_hil.link.base import DriveLink
-from dob_hil.log import LogWriter
 from dob_hil.loop.cycle import ControlCycle
 
 SEQ_MODULO = 256
+
+
+class LoopLog(Protocol):
+    """What the runners write besides samples: events (``time_ns`` None: the run's clock now) and
+    the writer's flush (see :class:`dob_hil.loop.timeline.LoopLog`)."""
+
+    def event(
+        self, time_ns: int | None, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
+    ) -> None: ...
+
+    def flush(self, force: bool = False) -> None: ...
 
 
 class StopRequest(Protocol):
@@ -62,7 +75,7 @@ def run_lockstep(
     cycle: ControlCycle,
     link: DriveLink,
     drive: LockstepDrive,
-    log: LogWriter,
+    log: LoopLog,
     limits: LoopLimits,
     stop: StopRequest,
     progress: Callable[[int], None] | None = None,
@@ -115,10 +128,10 @@ def run_lockstep(
     return "completed"
 
 
-def _log_gap(log: LogWriter, k: int, count: int) -> None:
+def _log_gap(log: LoopLog, k: int, count: int) -> None:
     """Lockstep: the event for ``count`` samples before ``k`` that had no feedback."""
     log.event(
-        time.monotonic_ns(),
+        None,
         "warning",
         "feedback_lost",
         f"no feedback for {count} sample(s) before sample {k}",
@@ -126,10 +139,22 @@ def _log_gap(log: LogWriter, k: int, count: int) -> None:
     )
 
 
+def _gap(seq: int, expected_seq: int, since_answered_ns: int, period_ns: int) -> int:
+    """Samples between the expected one and feedback ``seq``: the sequence number's difference
+    (mod 256, -128..127), unless the time since the last answered feedback says that 64 or more
+    periods passed: then the difference plus the multiple of 256 closest to that time's count
+    (right while the time's count is within 128 periods of the truth)."""
+    delta = _seq_delta(seq, expected_seq)
+    by_time = round(since_answered_ns / period_ns) - 1  # periods passed beyond the expected one
+    if by_time >= SEQ_MODULO // 4:
+        delta += SEQ_MODULO * round((by_time - delta) / SEQ_MODULO)
+    return delta
+
+
 def run_realtime(
     cycle: ControlCycle,
     link: DriveLink,
-    log: LogWriter,
+    log: LoopLog,
     limits: LoopLimits,
     stop: StopRequest,
     first_feedback_timeout_ns: int = 2_000_000_000,
@@ -159,6 +184,8 @@ def run_realtime(
     anchor_ns = fb.rx_time_ns
     expected_seq = fb.seq
     last_rx_ns = fb.rx_time_ns
+    answered_rx_ns = fb.rx_time_ns - period_ns  # rx time of the last answered feedback (none yet)
+    last_log_ns = 0  # the samples' log time never steps back
     k = 0
     while k < limits.n_samples:
         reason = stop.requested
@@ -181,7 +208,7 @@ def run_realtime(
         overrun = False
         while (newer := receive(0)) is not None:  # only when frames are already queued
             fb, overrun = newer, True
-        delta = _seq_delta(fb.seq, expected_seq)
+        delta = _gap(fb.seq, expected_seq, fb.rx_time_ns - answered_rx_ns, period_ns)
         if delta < 0:  # older than expected: a duplicate or a reordered frame
             log.event(clock_ns(), "warning", "stale_feedback", f"feedback seq {fb.seq} is {-delta} behind")
             fb = None
@@ -198,7 +225,9 @@ def run_realtime(
             )
             cycle.stats.skipped += fill
             for _ in range(fill):
-                cycle.on_lost(k, anchor_ns + k * period_ns, expected_seq)
+                t = anchor_ns + k * period_ns
+                last_log_ns = t if t > last_log_ns else last_log_ns
+                cycle.on_lost(k, last_log_ns, expected_seq)
                 k += 1
                 expected_seq = (expected_seq + 1) % SEQ_MODULO
             if k >= limits.n_samples:
@@ -209,7 +238,9 @@ def run_realtime(
             anchor_ns += lateness_ns >> 6  # track the drive's clock (first order, 64 samples)
         else:
             anchor_ns = fb.rx_time_ns - k * period_ns  # the drive's clock jumped: re-anchor
-        cycle.on_feedback(k, instant_ns, fb, lateness_ns, overrun)
+        last_log_ns = instant_ns if instant_ns > last_log_ns else last_log_ns
+        cycle.on_feedback(k, last_log_ns, fb, lateness_ns, overrun)
+        answered_rx_ns = fb.rx_time_ns
         log.flush()
         k += 1
         expected_seq = (fb.seq + 1) % SEQ_MODULO
