@@ -4,7 +4,7 @@ FaultyBus on the host's end).
 
 No wall-clock figure is asserted: periods are counted from sequence numbers and the drive's own
 period index (its ground truth), and the host timeout is only checked not to trip early. Timeouts
-are widened to 3000 periods (0.9 s) so that a stall of a loaded CI machine does not end a run.
+are widened to 10000 periods (3 s) so that a stall of a loaded CI machine does not end a run.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from firmware_sim.faulty_bus import FaultPlan
 
 pytestmark = pytest.mark.realtime
 
-PATIENCE = 3000  # watchdog and host timeout, periods (0.9 s: the tests share 2 cores with CPU hogs)
+PATIENCE = 10_000  # watchdog and host timeout, periods (3 s: the tests share 2 cores with CPU hogs)
 DURATION_S = 0.6
 N_CMD = 600  # host-side faults start at the host's 600th command (0.18 s into the run)
 
@@ -92,7 +92,7 @@ def test_realtime_fault_case(case: RtCase, tmp_path: Path, udp_channel: UdpChann
     try:
         with standalone_drive(cfg_path, channel, truth_port=truth.port) as proc:
             # ends at the fault (0.3 s), or PATIENCE periods after the drive fell silent
-            duration = DURATION_S if not case.faults else 3.0
+            duration = DURATION_S if not case.faults else 5.0
             r = run_case(
                 config, tmp_path / "rt.mcap", _plan(case.plan, node), interface="udp_multicast",
                 channel=channel, duration_s=duration, enable_timeout_s=15.0,

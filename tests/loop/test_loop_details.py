@@ -16,7 +16,7 @@ from dob_hil.config import Config
 from dob_hil.errors import DobHilError
 from dob_hil.log import read_log
 from dob_hil.loop.inproc_bus import InProcessBus, bus_pair
-from dob_hil.loop.runners import _gap
+from dob_hil.loop.runners import _seq_delta, _unsequenced_periods
 from dob_hil.loop.session import RunOptions, run_session
 
 PERIOD_NS = 300_000
@@ -79,18 +79,27 @@ def test_in_process_bus_hands_over_the_same_message() -> None:
 
 @pytest.mark.parametrize("last_seq", [0, 100, 255])
 @pytest.mark.parametrize("missing", [0, 1, 5, 127, 128, 200, 255, 256, 257, 300, 1000, 5000])
-def test_a_gap_is_counted_from_time_beyond_the_sequence_range(last_seq: int, missing: int) -> None:
-    """A host stall of ``missing`` periods after answering ``last_seq``: the newest feedback is
-    ``missing + 1`` periods later; the gap before it is ``missing`` samples, also beyond 255."""
+def test_a_stall_is_counted_from_time_beyond_the_sequence_range(last_seq: int, missing: int) -> None:
+    """A host stall of ``missing`` periods after sample k - 1: the newest feedback comes
+    ``missing + 1`` periods after k - 1's instant. The sequence difference plus the periods counted
+    from time is ``missing``, also beyond the 8-bit range (where the sequence alone wraps)."""
     expected = (last_seq + 1) % 256
     seq = (last_seq + 1 + missing) % 256
+    delta = _seq_delta(seq, expected)
     for jitter_ns in (-PERIOD_NS // 3, 0, PERIOD_NS // 3):
         since_ns = (missing + 1) * PERIOD_NS + jitter_ns
-        assert _gap(seq, expected, since_ns, PERIOD_NS) == missing
+        gap, excess = _unsequenced_periods(delta, since_ns, PERIOD_NS)
+        assert gap + excess == missing
+        assert gap == missing % 256 and 0 <= gap < 256
 
 
-def test_a_stale_frame_stays_stale() -> None:
-    assert _gap(9, 11, PERIOD_NS, PERIOD_NS) == -2  # a reordered frame, read at once
+def test_a_stale_frame_read_at_once_is_no_stall() -> None:
+    assert _unsequenced_periods(_seq_delta(9, 11), PERIOD_NS, PERIOD_NS) == (-2, 0)
+
+
+def test_a_drive_stalled_with_the_host_is_reported_not_filled() -> None:
+    # the expected sequence number, 300 periods late: both sides stalled (a starved machine)
+    assert _unsequenced_periods(0, 301 * PERIOD_NS, PERIOD_NS) == (0, 300)
 
 
 def test_run_section_os_settings_are_applied(paper_step: Config, log_path: Path) -> None:

@@ -36,6 +36,7 @@ class CycleStats:
     missing: int = 0
     overruns: int = 0
     skipped: int = 0
+    unsequenced_periods: int = 0  # real time: periods a stall hid from the sequence number (by time)
     max_consecutive_missing: int = 0
     max_abs_applied_A: float = 0.0
     compute_ns_max: int = 0

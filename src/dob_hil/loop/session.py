@@ -81,6 +81,7 @@ class RunSummary:
     skipped_samples: int
     overruns: int
     max_abs_current_A: float
+    unsequenced_periods: int  # periods a stall hid from the sequence number, counted by time
     current_limit_A: float
     compute_ns_max: int
     log_dropped_records: int
@@ -131,12 +132,16 @@ def _signals(flag: _StopFlag) -> Iterator[None]:
             signal.signal(s, h)
 
 
-def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message, bool], None]:
+def _frame_stamper(
+    log: LogWriter, lockstep_drive: Any, loop_log: LoopLog
+) -> Callable[[can.Message, bool], None]:
     """Log frames on the samples' clock, so that frames and samples line up (in Foxglove too).
 
     Lockstep: the simulated drive's time (the sample instants are ``k * period_ns`` of it). Real
     time: the bus timestamp (python-can's ``time.time()`` base for most interfaces) moved onto
-    ``time.monotonic_ns`` by the offset between the two clocks taken at the start.
+    ``time.monotonic_ns`` by the offset between the two clocks taken at the start, kept
+    non-decreasing; the hook only queues the frame with its time, and the control thread packs
+    it at its next flush, after the command is sent (``LoopLog.defer_frames``).
     """
     frame_raw = log.frame_raw
 
@@ -161,13 +166,20 @@ def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message
         return stamp_lockstep
     offset_ns = time.monotonic_ns() - time.time_ns()
     clamp = frame_clamp()  # non-decreasing: an own echo's bus time can precede the send's log time
+    pending: list[tuple[int, can.Message, bool]] = []
+    monotonic_ns = time.monotonic_ns
 
     def stamp_realtime(msg: can.Message, is_rx: bool) -> None:
-        aid, dlc, data, flags = parts(msg)
         ts = msg.timestamp
-        t = round(ts * 1e9) + offset_ns if ts else time.monotonic_ns()
-        frame_raw(clamp(t), aid, is_rx, dlc, data, flags)
+        pending.append((round(ts * 1e9) + offset_ns if ts else monotonic_ns(), msg, is_rx))
 
+    def write_pending() -> None:
+        for t, msg, is_rx in pending:
+            aid, dlc, data, flags = parts(msg)
+            frame_raw(clamp(t), aid, is_rx, dlc, data, flags)
+        pending.clear()
+
+    loop_log.defer_frames(pending, write_pending)
     return stamp_realtime
 
 
@@ -309,7 +321,7 @@ def _run_with_log(
         if kind == "encoder_jump":
             envelope.encoder_jump()
 
-    frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
+    frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None, loop_log)
     if options.bus_wrapper is not None:
         host_bus = options.bus_wrapper(host_bus)
     link = profile.make_link(host_bus, config, frame_hook, on_event)
@@ -411,6 +423,7 @@ def _run_with_log(
             missing_samples=stats.missing,
             skipped_samples=stats.skipped,
             overruns=stats.overruns,
+            unsequenced_periods=stats.unsequenced_periods,
             max_abs_current_A=stats.max_abs_applied_A,
             current_limit_A=config.drive.current_limit_A,
             compute_ns_max=stats.compute_ns_max,
@@ -419,7 +432,7 @@ def _run_with_log(
             rt_applied=rt_report.applied if rt_report else [],
             rt_refused=rt_report.refused if rt_report else [],
         )
-        loop_log.drain_truth()
+        loop_log.flush()  # the frames and truth still queued
         if flag.ignored_signals:
             note = f"{flag.ignored_signals} signal(s) while stopping: noted, the stop went on"
             loop_log.event(None, "warning", "signal_while_stopping", note)
@@ -427,6 +440,7 @@ def _run_with_log(
         link.close()
         if drive_bus is not None:
             drive_bus.shutdown()
+        loop_log.flush()  # the frames of the close
         log.close({k: json.dumps(v) if not isinstance(v, str) else v for k, v in summary.to_dict().items()})
         summary.log_dropped_records = log.stats.dropped_records
     return summary

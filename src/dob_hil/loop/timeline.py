@@ -9,7 +9,9 @@ reading of the clock comes after one raised later): a time earlier than the chan
 logged at the last. Host wall-clock figures stay as fields (``compute_ns``, the summary's
 ``wall_time_s``).
 
-The embedded real-time drive's ground truth arrives on its timer thread: it is queued here
+Real time, the frame hook only queues a frame with its time; the control thread packs the queued
+frames at :meth:`LoopLog.flush`, after the period's command is sent. The embedded real-time
+drive's ground truth arrives on its timer thread: it is queued here
 (``collections.deque`` appends are thread-safe) and written by the control thread at its next
 :meth:`LoopLog.flush`, so that the log writer has one owner.
 """
@@ -33,6 +35,12 @@ class LoopLog:
         self._last_event_ns = 0
         self._truth: deque[tuple[int, Any]] = deque()
         self._last_truth_ns = 0
+        self._frames: list[Any] = []
+        self._write_frames: Callable[[], None] | None = None
+
+    def defer_frames(self, pending: list[Any], write: Callable[[], None]) -> None:
+        """Frames queued by the frame hook (``pending``) are written by ``write`` at each flush."""
+        self._frames, self._write_frames = pending, write
 
     def now_ns(self) -> int:
         """The run's clock: the drive's simulated time in lockstep, monotonic in real time."""
@@ -54,6 +62,9 @@ class LoopLog:
         self._truth.append((time.monotonic_ns(), t))
 
     def flush(self, force: bool = False) -> None:
+        """Write what the hooks queued (frames, truth), then let the writer hand over its batch."""
+        if self._frames and self._write_frames is not None:
+            self._write_frames()
         if self._truth:
             self.drain_truth()
         self._log.flush(force)
