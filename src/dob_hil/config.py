@@ -25,6 +25,7 @@ from dob_hil.config_schema import (
     MAX_STATES,
 )
 from dob_hil.errors import ConfigError
+from dob_hil.loop.envelope import SafetyConfig, parse_safety
 
 ConfigSection = _Section  # what a profile's parse_options receives: its [drive.<profile>] table
 
@@ -201,6 +202,7 @@ class Config:
     run: RunConfig
     source: Path | None = None
     text: str = ""
+    safety: SafetyConfig = field(default_factory=SafetyConfig)  # [safety]: dob_hil.loop.envelope
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,8 +254,9 @@ def parse_config(data: Mapping[str, Any], source: Path | None = None, text: str 
     sim = _parse_sim(root.sub("sim"), plant)
     reference = _parse_reference(root.sub("reference"), base_dir, plant)
     run = _parse_run(root.sub("run"))
+    safety = parse_safety(root.sub("safety"))
     root.finish()
-    return Config(name, plant, design, drive, sim, reference, run, source, text)
+    return Config(name, plant, design, drive, sim, reference, run, source, text, safety)
 
 
 def _parse_name(meta: _Section, source: Path | None) -> str:
