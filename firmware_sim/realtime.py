@@ -2,9 +2,13 @@
 
 * The **timer thread** wakes on absolute deadlines ``t0 + k Ts`` (sleep, then optionally spin the
   last ``spin_ns``: only where no other thread of the process needs the GIL, i.e. in the
-  standalone process). At each deadline it integrates the plant up to the nominal instant
-  ``k Ts``, closes the period (watchdog, heartbeat), latches the encoder and sends FEEDBACK,
-  delayed by the configured latency + jitter or dropped (seeded loss). If it falls more than a
+  standalone process). The spin yields the CPU on every turn (``sched_yield``, which also lets
+  the GIL go), so a thread of the same priority, such as the main thread handling SIGINT under
+  SCHED_FIFO, or another process on a shared CPU, is never starved; a period that starts late
+  (an overrun) is not spun at all, and the thread yields once per period even then. At each
+  deadline it integrates the plant up to the nominal instant ``k Ts``, closes the period
+  (watchdog, heartbeat), latches the encoder and sends FEEDBACK, delayed by the configured
+  latency + jitter or dropped (seeded loss). If it falls more than a
   period behind it skips to the latest deadline and counts the skipped instants as overruns (the
   watchdog counts one period per processed instant, so the simulator's own stalls do not trip
   it).
@@ -12,6 +16,9 @@
   (the bus timestamp converted to the monotonic clock when plausible, else the time it was
   read): a command's current acts from its arrival (plus the input delay), so the period is
   integrated piecewise: old current up to the arrival, new current after.
+* A frame the bus cannot deliver (``bus.recv`` raising ``CanError``, e.g. a datagram on the
+  udp_multicast group that is not a python-can frame) is counted in ``stats.rx_errors`` and
+  skipped; :data:`MAX_CONSECUTIVE_RX_ERRORS` in a row (a broken bus) stop the drive.
 * An exception in either thread stops both; :meth:`RealtimeClock.check` and
   :meth:`RealtimeClock.stop` re-raise it in the caller's thread.
 
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import os
 import sys
 import threading
 import time
@@ -31,12 +39,16 @@ import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
+from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
 RECV_POLL_S = 0.05  # the receive thread notices stop() within this
 MAX_SLEEP_S = 0.05  # the timer thread notices stop() within this
 TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now are not trusted
+MAX_CONSECUTIVE_RX_ERRORS = 1000  # bus.recv raising this often in a row: the bus is broken
+JOIN_TIMEOUT_S = 5.0  # stop() waits this long for each thread (they are daemons)
+_yield = getattr(os, "sched_yield", lambda: time.sleep(0))
 
 
 def _set_timer_slack_1ns() -> None:
@@ -58,10 +70,13 @@ class RealtimeClock:
         truth_sink: TruthSink | None = None,
         *,
         spin_ns: int = 0,
+        behaviour: DriveBehaviour = REFERENCE,
     ) -> None:
         self.bus = bus
         window = min(config.drive.watchdog_periods, 64)
-        self.core = DriveCore(config, accept_window=max(window, 2), want_truth=truth_sink is not None)
+        self.core = DriveCore(
+            config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
+        )
         self.truth_sink = truth_sink
         self.spin_ns = spin_ns
         sim = config.sim
@@ -92,7 +107,7 @@ class RealtimeClock:
         self._stop.set()
         for t in self._threads:
             if t is not threading.current_thread():
-                t.join()
+                t.join(JOIN_TIMEOUT_S)  # bounded: a stop always returns (the threads are daemons)
         self.check()
 
     def check(self) -> None:
@@ -119,18 +134,23 @@ class RealtimeClock:
             return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
     # --- threads -------------------------------------------------------------------------------
-    def _wait_until(self, deadline_ns: int) -> None:
+    def _wait_until(self, deadline_ns: int) -> bool:
+        """Sleep (then spin, yielding, the last ``spin_ns``) until ``deadline_ns``; False if it had
+        already passed (nothing waited)."""
         spin = self.spin_ns
+        waited = False
         while not self._stop.is_set():
             remaining = deadline_ns - time.monotonic_ns()
             if remaining <= 0:
-                return
+                return waited
+            waited = True
             if remaining > spin:
                 time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
             else:
-                while time.monotonic_ns() < deadline_ns:
-                    pass
-                return
+                while time.monotonic_ns() < deadline_ns and not self._stop.is_set():
+                    _yield()  # never starve a thread of the same priority, nor hold the GIL
+                return True
+        return waited
 
     def _timer_loop(self) -> None:
         _set_timer_slack_1ns()
@@ -145,7 +165,8 @@ class RealtimeClock:
                 self._wait_until(outbox[0][0])
                 _, aid, payload = outbox.popleft()
                 self._send(aid, payload)
-            self._wait_until(deadline)
+            if not self._wait_until(deadline):
+                _yield()  # late: still give the CPU (and the GIL) to whoever waits for it
             if self._stop.is_set():
                 return
             with self._lock:
@@ -179,8 +200,18 @@ class RealtimeClock:
         core, t0 = self.core, self._t0_ns
         command_id, control_id = core.command_id, core.control_id
         recv = self.bus.recv
+        errors_in_row = 0
         while not self._stop.is_set():
-            msg = recv(RECV_POLL_S)
+            try:
+                msg = recv(RECV_POLL_S)
+            except can.CanError:
+                errors_in_row += 1
+                with self._lock:
+                    core.stats.rx_errors += 1
+                if errors_in_row >= MAX_CONSECUTIVE_RX_ERRORS:
+                    raise
+                continue
+            errors_in_row = 0
             if msg is None:
                 continue
             aid = msg.arbitration_id
