@@ -636,3 +636,19 @@ def test_bad_drive_config_is_refused(change: dict[str, object], field: str) -> N
     with can.Bus(interface="virtual", channel=unique_channel()) as bus, pytest.raises(ConfigError) as info:
         NativeDriveLink(bus, config)
     assert info.value.field == field
+
+
+def test_sequence_restart_after_a_quick_disable_and_enable_is_accepted(rig: Rig) -> None:
+    """Disabled and enabled again within one period: no DISABLED feedback in between, only the
+    heartbeats; the restarted sequence is still accepted."""
+    rig.link.request_enable()
+    rig.drive.heartbeat(DriveState.ENABLED)
+    for seq in (40, 41, 42):
+        rig.drive.feedback(0, seq, Status.ENABLED)
+    rig.drive.heartbeat(DriveState.DISABLED)
+    rig.drive.heartbeat(DriveState.ENABLED)
+    rig.drive.feedback(0, 0, Status.ENABLED)
+    rig.drive.feedback(0, 1, Status.ENABLED)
+    got = [fb.seq for fb in iter(lambda: rig.link.receive_feedback(0), None) if fb]
+    assert got == [40, 41, 42, 0, 1]
+    assert rig.link.stats.stale_feedback == 0

@@ -286,6 +286,7 @@ class NativeDriveLink:
         self._enable_attempt_faults = -1  # stats.drive_faults when the enable attempt began; -1: none
         self._enable_seen = False
         self._refusal: str | None = None  # why the drive refuses the current enable attempt
+        self._resync = False  # a heartbeat reported entering ENABLED: the next feedback may restart
         self._peer_version: int | None = None  # a protocol version the drive reported, not ours
         self._legacy_heartbeats = 0  # frames that look like a version-1 heartbeat of our node
         self._first_rejection: str | None = None  # what the first malformed frame was
@@ -475,10 +476,15 @@ class NativeDriveLink:
             return None
         raw_counts, seq, status = _FEEDBACK_STRUCT.unpack_from(data)
         last_seq = self._last_seq
-        if status & _ENABLED and self._state is not DriveState.ENABLED and not status & _FAULT:
+        if (
+            status & _ENABLED
+            and not status & _FAULT
+            and (self._resync or self._state is not DriveState.ENABLED)
+        ):
             if last_seq is not None and (seq - last_seq) & 0xFF != 1:
                 self.stats.sequence_restarts += 1
             last_seq = None  # entering ENABLED: the drive may restart its sequence (PROTOCOL.md)
+            self._resync = False
         if last_seq is not None:
             ahead = (seq - last_seq) & 0xFF
             if ahead == 0 or ahead >= self._stale_from:
@@ -554,6 +560,8 @@ class NativeDriveLink:
             self._malformed(now_ns, msg, self._version_text())
             return None
         state = heartbeat.state
+        if state is DriveState.ENABLED and self._state is not DriveState.ENABLED:
+            self._resync = True
         if state is not self._state:
             self._change_state(now_ns, state, "heartbeat")
         elif self._enable_attempt_faults >= 0:
