@@ -700,8 +700,7 @@ class NativeDriveLink:
                 break
             self._consume(msg)
             self._check_attempt()
-            if self._enable_seen:
-                self._attempt_result()
+            if self._enable_seen and self.poll_enabled():  # still so once every queued frame is read
                 return
         if self.poll_enabled():  # frames that were queued when the deadline passed
             return
