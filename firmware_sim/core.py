@@ -27,7 +27,7 @@ Behaviour: the drive side of ``docs/PROTOCOL.md`` (version 2); the section names
 * The watchdog is armed by the first valid command after entering ENABLED; armed, the
   ``watchdog_periods``-th period in a row without a valid command faults the drive: FAULT frame
   ``WATCHDOG`` (info = periods, capped at 255) and status FAULT|WATCHDOG until CLEAR_FAULT. Not
-  armed, it allows :data:`FIRST_COMMAND_TIMEOUT_NS` (at least ``watchdog_periods``), then faults
+  armed, it allows :data:`FIRST_COMMAND_TIMEOUT_NS` (at least ``2 watchdog_periods``), then faults
   ``WATCHDOG`` with info 0.
 * A plant position the encoder cannot represent (non-finite, or the physics overflowing) faults
   the drive with ``ENCODER``.
@@ -35,7 +35,8 @@ Behaviour: the drive side of ``docs/PROTOCOL.md`` (version 2); the section names
 * :class:`~firmware_sim.behaviour.DriveBehaviour` selects the variants the spec permits
   (sequence restart on enable, FAULT on a COMMAND while DISABLED, padded frames) and two
   deliberate violations.
-* A FAULT frame is sent only when the drive enters FAULT, followed by a HEARTBEAT.
+* A FAULT frame is sent when the drive enters FAULT, followed by a HEARTBEAT, and again before
+  every periodic HEARTBEAT while in FAULT (a host started later learns the code and info).
 * Injected faults (``[sim.faults]``, :mod:`firmware_sim.faults`): a FAULT at period N, silence
   from period N (:attr:`DriveCore.silent`: the clocks send nothing), an encoder jump at period N.
 * FEEDBACK status: ENABLED, SATURATED (the last applied command was clamped), FAULT, WATCHDOG
@@ -168,6 +169,7 @@ class DriveCore:
         self._samples = 0  # feedback samples taken; the sequence is (this - _seq_origin) mod 256
         self._seq_origin = 0  # sample number of sequence 0 (moves on enable with restart_sequence)
         self._physics_ok = True  # False once the physics overflowed (ENCODER fault)
+        self._fault_payload = b""  # the FAULT frame of the current fault
         self._pad = behaviour.pad_frames
         self._last_accepted = -1  # sample number answered by the last valid command
         self._next_heartbeat_ns = HEARTBEAT_PERIOD_NS
@@ -293,7 +295,8 @@ class DriveCore:
         if was_enabled:
             self.path.cut(t_ns)
         self.saturated = False
-        self._out.append((FrameKind.FAULT, encode_fault(FaultFrame(code, min(info, 255)))))
+        self._fault_payload = encode_fault(FaultFrame(code, min(info, 255)))
+        self._out.append((FrameKind.FAULT, self._fault_payload))
         self._out.append(self._heartbeat(DriveState.FAULT))
 
     # --- time ----------------------------------------------------------------------------------
@@ -339,6 +342,8 @@ class DriveCore:
         if self.machine.state is DriveState.ENABLED and self.watchdog.period_elapsed(commanded):
             self.fault(FaultCode.WATCHDOG, self.watchdog.info, self.time_ns)
         if self.time_ns >= self._next_heartbeat_ns:
+            if self.machine.state is DriveState.FAULT:  # repeated, so a host started later learns it
+                self._out.append((FrameKind.FAULT, self._fault_payload))
             self._out.append(self._heartbeat(self.machine.state))
             while self._next_heartbeat_ns <= self.time_ns:
                 self._next_heartbeat_ns += HEARTBEAT_PERIOD_NS

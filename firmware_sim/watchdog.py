@@ -2,7 +2,8 @@
 
 Once armed, the ``periods``-th consecutive period without a valid command trips it (info: the
 periods missed). Before the first command it counts against ``arm_periods`` instead (the host's
-start-up time after the enable handshake); running out trips it with info 0.
+start-up time after the enable handshake; at least twice ``periods``); running out trips it with
+info 0.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ class CommandWatchdog:
         if periods < 1:
             raise ValueError(f"watchdog periods must be >= 1, got {periods}")
         self.periods = periods
-        self.arm_periods = max(periods, arm_periods or periods)
+        self.arm_periods = max(2 * periods, arm_periods or 0)
         self.armed = False
         self.missed = 0  # consecutive periods without a valid command
 

@@ -139,15 +139,30 @@ class _Session:
         self.o = opts
         self.book = _Book()
         w = opts.watchdog_periods
-        self.grace_periods = max(2 * w, 50)
-        self.run_periods = max(3 * w, 60)
+        # beyond the watchdog, within the first-command allowance (at least 2 W periods, PROTOCOL.md)
+        self.grace_periods = w + max(1, w // 2)
+        self.run_periods = w + max(10, w // 2)
 
     # --- helpers ---------------------------------------------------------------------------------
-    def control(self, request: ControlRequest, **kw: object) -> Rx | None:
-        """Send a CONTROL; the HEARTBEAT answering it (or None)."""
+    def control(self, request: ControlRequest, want: DriveState | None = None, **kw: object) -> Rx | None:
+        """Send a CONTROL; the HEARTBEAT answering it: the first of state ``want``, or else the
+        second HEARTBEAT after the request (a periodic one sent before the drive acted may come
+        first), or else the last one within the answer timeout (None: no HEARTBEAT at all)."""
         mark = self.p.mark()
         self.p.control(request, **kw)  # type: ignore[arg-type]
-        rx = self.p.wait(mark, _is_hb(), periods=10**9, timeout_s=self.o.answer_timeout_s)
+        seen = [0]
+        is_hb = _is_hb()
+
+        def answer(rx: Rx) -> bool:
+            if not is_hb(rx):
+                return False
+            seen[0] += 1
+            return want is None or seen[0] >= 2 or rx.frame.state is want  # type: ignore[union-attr]
+
+        rx = self.p.wait(mark, answer, periods=10**9, timeout_s=self.o.answer_timeout_s)
+        if rx is None:
+            heartbeats = self.p.since(mark, FrameKind.HEARTBEAT)
+            rx = heartbeats[-1] if heartbeats else None
         self.book.record(
             "H2",
             rx is not None,
@@ -156,7 +171,7 @@ class _Session:
         return rx
 
     def state_after(self, request: ControlRequest, want: DriveState, **kw: object) -> tuple[bool, str]:
-        rx = self.control(request, **kw)
+        rx = self.control(request, want, **kw)
         ok = rx is not None and isinstance(rx.frame, HeartbeatFrame) and rx.frame.state is want
         return ok, f"CONTROL {request.name} answered by {_hb_state(rx)}, expected {want.name}"
 
@@ -173,9 +188,9 @@ class _Session:
         return [rx.frame for rx in self.p.since(mark, FrameKind.FAULT) if isinstance(rx.frame, FaultFrame)]
 
     def to_disabled(self) -> bool:
-        """Bring the drive to DISABLED (clear a fault, disable)."""
-        for request in (ControlRequest.CLEAR_FAULT, ControlRequest.DISABLE):
-            rx = self.control(request)
+        """Bring the drive to DISABLED (disable; clear a fault)."""
+        for request in (ControlRequest.DISABLE, ControlRequest.CLEAR_FAULT):
+            rx = self.control(request, DriveState.DISABLED)
             if (
                 rx is not None
                 and isinstance(rx.frame, HeartbeatFrame)

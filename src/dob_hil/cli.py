@@ -69,6 +69,22 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--sched-fifo", action="store_true", help="SCHED_FIFO where permitted")
         p.add_argument("--cpu", type=int, action="append", help="pin the loop to this CPU")
         p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() and gc.disable()")
+        p.add_argument(
+            "--clear-fault",
+            action="store_true",
+            help="send ClearFault before enabling (a drive left in FAULT, e.g. by a killed run)",
+        )
+        p.add_argument(
+            "--feedback-timeout-periods",
+            type=int,
+            help="host timeout: periods without feedback that end the run (drive.feedback_timeout_periods)",
+        )
+        p.add_argument(
+            "--watchdog-periods",
+            type=int,
+            help="the embedded drive's command watchdog (drive.watchdog_periods; for a drive in "
+            "another process, give it there: python -m firmware_sim --watchdog-periods)",
+        )
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
         p.add_argument("--json", action="store_true", help="print the summary as JSON")
     elif name == "demo":

@@ -305,6 +305,7 @@ class DriveConfig:
     encoder_bits: int = 32
     watchdog_periods: int = 10
     feedback_timeout_periods: int = 10
+    clear_fault: bool = False  # send ClearFault before enabling (recover a drive left in FAULT)
 
 
 @dataclass(frozen=True)
@@ -521,6 +522,7 @@ def _parse_drive(s: _Section) -> DriveConfig:
         encoder_bits=s.integer("encoder_bits", 32, low=8, high=32),
         watchdog_periods=s.integer("watchdog_periods", 10, low=1, high=100_000),
         feedback_timeout_periods=s.integer("feedback_timeout_periods", 10, low=1, high=100_000),
+        clear_fault=s.boolean("clear_fault", False),
     )
     if d.current_limit_A / d.dac_lsb_A > 32767:
         raise ConfigError(

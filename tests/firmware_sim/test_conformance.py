@@ -3,8 +3,9 @@
 The reference drive and every variant PROTOCOL.md permits (sequence restart on enable, FAULT on a
 COMMAND while DISABLED, frames padded to 8 bytes) pass every rule; the two deliberate violations
 fail exactly the rules they break. The drive runs on its real-time clock; the kit counts time in
-the drive's periods, and the watchdog is wide (200 periods of 1 ms) so that a loaded machine
-stretches the run instead of failing it.
+the drive's periods, and a loaded machine stretches the run instead of failing it: the watchdog is
+wide (500 periods of 1 ms), so the kit's answering thread may stall for half a second beside the
+drive's threads in this process.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from firmware_sim.conformance import RULES, KitOptions, run_conformance
 from firmware_sim.conformance.__main__ import main as kit_main
 from firmware_sim.process import standalone_drive
 
-WATCHDOG_PERIODS = 200
+WATCHDOG_PERIODS = 500
 DRIVE = {"watchdog_periods": WATCHDOG_PERIODS}
 PLANT = {"period_us": 1000.0}
 REPO = Path(__file__).resolve().parents[2]

@@ -536,7 +536,10 @@ class NativeDriveLink:
         except ProtocolError as exc:
             self._malformed(now_ns, msg, str(exc))
             return None
+        repeat = self._state is DriveState.FAULT and fault == self._last_fault
         self._last_fault = fault
+        if repeat:  # the drive repeats its FAULT frame while in FAULT: no new fault, no new event
+            return None
         self._state = DriveState.FAULT
         self._enable_seen = False
         self._stopped = False  # the drive changed state on its own: a later stop is sent again

@@ -30,6 +30,10 @@ from dob_hil.log import LogWriter
 from dob_hil.loop.cycle import ControlCycle
 
 SEQ_MODULO = 256
+TIMEOUT_HINT = (
+    "; on a busy machine widen --feedback-timeout-periods (drive.feedback_timeout_periods) and the "
+    "drive's watchdog (--watchdog-periods), or give the loop and the drive a CPU each"
+)
 
 
 class StopRequest(Protocol):
@@ -94,7 +98,9 @@ def run_lockstep(
         if fb is None:
             missing_run += 1
             if missing_run >= limits.timeout_periods:
-                raise DriveFault(f"no feedback from the drive for {missing_run} periods (host timeout)")
+                raise DriveFault(
+                    f"no feedback from the drive for {missing_run} periods (host timeout){TIMEOUT_HINT}"
+                )
             answer = 0 if expected_seq is None else expected_seq
             on_missing(k, time_ns, answer, 0, False)
         else:
@@ -172,7 +178,7 @@ def run_realtime(
                 if clock_ns() - last_rx_ns >= timeout_ns:
                     raise DriveFault(
                         f"no feedback from the drive for {limits.timeout_periods} periods "
-                        f"({timeout_ns / 1e6:g} ms: host timeout)"
+                        f"({timeout_ns / 1e6:g} ms: host timeout){TIMEOUT_HINT}"
                     )
                 continue
         if fb.fault:

@@ -293,6 +293,9 @@ def _run_with_log(
         with _signals(flag):
             log.event(time.monotonic_ns(), "info", "run_start", f"{mode} run of {n_samples} samples")
             if mode == "lockstep":
+                if config.drive.clear_fault:
+                    link.request_clear_fault()
+                    drive.service()
                 link.request_enable()
                 for _ in range(3):
                     drive.service()
@@ -308,6 +311,8 @@ def _run_with_log(
                     # in its own process is the real-time setup)
                     sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
                     drive.start()
+                if config.drive.clear_fault:
+                    link.clear_fault(int(options.enable_timeout_s * 1e9))
                 link.enable(int(options.enable_timeout_s * 1e9))
                 exit_reason = run_realtime(cycle, link, log, limits, flag, progress=progress)
     except DriveFault as exc:
