@@ -5,7 +5,8 @@
   standalone process). The spin yields the CPU on every turn (``sched_yield``, which also lets
   the GIL go), so a thread of the same priority, such as the main thread handling SIGINT under
   SCHED_FIFO, or another process on a shared CPU, is never starved; a period that starts late
-  (an overrun) is not spun at all, and the thread yields once per period even then. At each
+  (an overrun) is not spun at all, and under SCHED_FIFO the thread yields once per period even
+  then (under the normal policy the kernel shares the CPU on its own, and a late drive keeps it). At each
   deadline it integrates the plant up to the nominal instant ``k Ts``, closes the period
   (watchdog, heartbeat), latches the encoder and sends FEEDBACK, delayed by the configured
   latency + jitter or dropped (seeded loss). If it falls more than a
@@ -49,6 +50,14 @@ TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now
 MAX_CONSECUTIVE_RX_ERRORS = 1000  # bus.recv raising this often in a row: the bus is broken
 JOIN_TIMEOUT_S = 5.0  # stop() waits this long for each thread (they are daemons)
 _yield = getattr(os, "sched_yield", lambda: time.sleep(0))
+
+
+def _realtime_policy() -> bool:
+    """This thread runs under SCHED_FIFO or SCHED_RR (where same-priority threads never preempt it)."""
+    try:
+        return os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)
+    except (AttributeError, OSError):
+        return False
 
 
 def _set_timer_slack_1ns() -> None:
@@ -154,6 +163,7 @@ class RealtimeClock:
 
     def _timer_loop(self) -> None:
         _set_timer_slack_1ns()
+        realtime_policy = _realtime_policy()
         core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
         feedback_id = FrameKind.FEEDBACK + self._node_id
         outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()  # (due, id, payload)
@@ -165,8 +175,8 @@ class RealtimeClock:
                 self._wait_until(outbox[0][0])
                 _, aid, payload = outbox.popleft()
                 self._send(aid, payload)
-            if not self._wait_until(deadline):
-                _yield()  # late: still give the CPU (and the GIL) to whoever waits for it
+            if not self._wait_until(deadline) and realtime_policy:
+                _yield()  # late under SCHED_FIFO: still let a thread of the same priority run
             if self._stop.is_set():
                 return
             with self._lock:

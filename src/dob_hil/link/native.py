@@ -335,6 +335,20 @@ class NativeDriveLink:
         return self._last_fault
 
     @property
+    def fault_description(self) -> str | None:
+        """The last fault for an error message (with what to widen for a watchdog trip), or None."""
+        if self._last_fault is None:
+            return None
+        text = describe_fault(self._last_fault)
+        if self._last_fault.code is FaultCode.WATCHDOG:
+            text += (
+                "; the drive missed this host's commands: on a busy machine widen its watchdog "
+                "(drive.watchdog_periods; python -m firmware_sim --watchdog-periods) and the host "
+                "timeout (--feedback-timeout-periods) together"
+            )
+        return text
+
+    @property
     def last_seq(self) -> int | None:
         """Sequence number of the last accepted feedback."""
         return self._last_seq

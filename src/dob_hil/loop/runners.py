@@ -30,6 +30,12 @@ from dob_hil.log import LogWriter
 from dob_hil.loop.cycle import ControlCycle
 
 SEQ_MODULO = 256
+def _fault_message(link: object, seq: int) -> str:
+    """The drive's fault, named by the link where it can (``fault_description``)."""
+    detail = getattr(link, "fault_description", None)
+    return f"the drive reports a fault (feedback seq {seq})" + (f": {detail}" if detail else "")
+
+
 TIMEOUT_HINT = (
     "; on a busy machine widen --feedback-timeout-periods (drive.feedback_timeout_periods) and the "
     "drive's watchdog (--watchdog-periods), or give the loop and the drive a CPU each"
@@ -108,7 +114,7 @@ def run_lockstep(
                 _log_gap(log, k, missing_run)
                 missing_run = 0
             if fb.fault:
-                raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+                raise DriveFault(_fault_message(link, fb.seq))
             on_feedback(k, time_ns, fb, 0, False)
             expected_seq = fb.seq
         if expected_seq is not None:
@@ -182,7 +188,7 @@ def run_realtime(
                     )
                 continue
         if fb.fault:
-            raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+            raise DriveFault(_fault_message(link, fb.seq))
         last_rx_ns = fb.rx_time_ns
         overrun = False
         while (newer := receive(0)) is not None:  # only when frames are already queued
