@@ -116,6 +116,7 @@ class DriveConfig:
     feedback_timeout_periods: int = 10
     # the profile's own settings, parsed by its descriptor from [drive.<profile>] (None: it has none)
     options: object = None
+    clear_fault: bool = False  # send ClearFault before enabling (recover a drive left in FAULT)
 
 
 @dataclass(frozen=True)
@@ -398,6 +399,7 @@ def _parse_drive(s: _Section) -> DriveConfig:
         encoder_bits=s.get("encoder_bits"),
         watchdog_periods=s.get("watchdog_periods"),
         feedback_timeout_periods=s.get("feedback_timeout_periods"),
+        clear_fault=s.get("clear_fault"),
         options=options,
     )
     if d.current_limit_A / d.dac_lsb_A > 32767:
