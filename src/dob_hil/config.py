@@ -95,11 +95,34 @@ class DobConfig:
     gain: float | None = None
 
 
+OPTIMIZE_TUNES = ("kdist", "all")
+
+
+@dataclass(frozen=True)
+class OptimizeConfig:
+    """``[design.optimize]``: the band and bounds of the ``optimize`` DOB design (dob_hil.design.optimize).
+    ``band_hz`` defaults to the span of the sine disturbances in [sim]; ``max_peak_T`` and
+    ``max_noise_rms_A`` to the starting design's own values; ``None`` bounds are not imposed."""
+
+    band_hz: tuple[float, float] | None = None
+    tune: str = "kdist"
+    max_peak_S: float = 2.0
+    max_peak_T: float | None = None
+    max_noise_rms_A: float | None = None
+    max_noise_peak_A: float | None = None
+    min_gain_margin_dB: float = 6.0
+    min_phase_margin_deg: float = 30.0
+    min_disk_gain_margin_dB: float | None = None
+    min_disk_phase_margin_deg: float | None = None
+    min_delay_margin_samples: float = 1.0
+
+
 @dataclass(frozen=True)
 class DesignConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     dob: DobConfig = field(default_factory=DobConfig)
+    optimize: OptimizeConfig = field(default_factory=OptimizeConfig)
 
 
 @dataclass(frozen=True)
@@ -372,8 +395,30 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
     if dob.Kdist is not None and dob.method is not None:
         raise ConfigError(d.name("Kdist"), "give either Kdist or a design method, not both")
     d.finish()
+    opt = _parse_optimize(s.sub("optimize"))
     s.finish()
-    return DesignConfig(est, fb, dob)
+    return DesignConfig(est, fb, dob, opt)
+
+
+def _parse_optimize(o: _Section) -> OptimizeConfig:
+    band = o.numbers("band_hz", positive=True)
+    if band is not None and (len(band) != 2 or band[0] > band[1]):
+        raise ConfigError(o.name("band_hz"), f"must be [lo, hi] in Hz with lo <= hi, got {list(band)}")
+    cfg = OptimizeConfig(
+        band_hz=(band[0], band[1]) if band is not None else None,
+        tune=o.string("tune", "kdist", OPTIMIZE_TUNES),
+        max_peak_S=o.number("max_peak_S", 2.0, positive=True),
+        max_peak_T=o.optional_number("max_peak_T", positive=True),
+        max_noise_rms_A=o.optional_number("max_noise_rms_A", positive=True),
+        max_noise_peak_A=o.optional_number("max_noise_peak_A", positive=True),
+        min_gain_margin_dB=o.number("min_gain_margin_dB", 6.0),
+        min_phase_margin_deg=o.number("min_phase_margin_deg", 30.0),
+        min_disk_gain_margin_dB=o.optional_number("min_disk_gain_margin_dB", positive=True),
+        min_disk_phase_margin_deg=o.optional_number("min_disk_phase_margin_deg", positive=True),
+        min_delay_margin_samples=o.number("min_delay_margin_samples", 1.0),
+    )
+    o.finish()
+    return cfg
 
 
 def _parse_drive(s: _Section) -> DriveConfig:
