@@ -58,6 +58,11 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
         p.add_argument("--out", help="output folder for the design file and plots")
         p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+        p.add_argument(
+            "--optimize",
+            action="store_true",
+            help="choose Kdist (tune = all: Lc, Kc too) for the best rejection per [design.optimize]",
+        )
     elif name == "run":
         p.add_argument("config", nargs="?", help="TOML config file")
         p.add_argument("--scenario", help="a shipped scenario: paper-step or paper-sine")

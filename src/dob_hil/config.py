@@ -84,6 +84,7 @@ class FeedbackConfig:
     q: float | None = None
     R2: Matrix | None = None
     ltr_q_values: tuple[float, ...] | None = None
+    ltr_band_hz: tuple[float, float] | None = None  # LTR error band; default up to 2x Gtl's crossover
 
 
 @dataclass(frozen=True)
@@ -93,9 +94,6 @@ class DobConfig:
     Kdist: Matrix | None = None
     method: str | None = None
     gain: float | None = None
-
-
-OPTIMIZE_TUNES = ("kdist", "all")
 
 
 @dataclass(frozen=True)
@@ -382,6 +380,7 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
         q=f.get("q"),
         R2=_gain(f, "R2", (m, m), f"inputs x inputs: {m} inputs"),
         ltr_q_values=f.get("ltr_q_values"),
+        ltr_band_hz=_band_hz(f, "ltr_band_hz"),
     )
     if fb.Kc is not None and (fb.q is not None or fb.R2 is not None):
         raise ConfigError(f.name("Kc"), "give either Kc or the LTR weights q/R2, not both")
@@ -400,22 +399,26 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
     return DesignConfig(est, fb, dob, opt)
 
 
-def _parse_optimize(o: _Section) -> OptimizeConfig:
-    band = o.numbers("band_hz", positive=True)
+def _band_hz(s: _Section, key: str) -> tuple[float, float] | None:
+    band: tuple[float, ...] | None = s.get(key)
     if band is not None and (len(band) != 2 or band[0] > band[1]):
-        raise ConfigError(o.name("band_hz"), f"must be [lo, hi] in Hz with lo <= hi, got {list(band)}")
+        raise ConfigError(s.name(key), f"must be [lo, hi] in Hz with lo <= hi, got {list(band)}")
+    return (band[0], band[1]) if band is not None else None
+
+
+def _parse_optimize(o: _Section) -> OptimizeConfig:
     cfg = OptimizeConfig(
-        band_hz=(band[0], band[1]) if band is not None else None,
-        tune=o.string("tune", "kdist", OPTIMIZE_TUNES),
-        max_peak_S=o.number("max_peak_S", 2.0, positive=True),
-        max_peak_T=o.optional_number("max_peak_T", positive=True),
-        max_noise_rms_A=o.optional_number("max_noise_rms_A", positive=True),
-        max_noise_peak_A=o.optional_number("max_noise_peak_A", positive=True),
-        min_gain_margin_dB=o.number("min_gain_margin_dB", 6.0),
-        min_phase_margin_deg=o.number("min_phase_margin_deg", 30.0),
-        min_disk_gain_margin_dB=o.optional_number("min_disk_gain_margin_dB", positive=True),
-        min_disk_phase_margin_deg=o.optional_number("min_disk_phase_margin_deg", positive=True),
-        min_delay_margin_samples=o.number("min_delay_margin_samples", 1.0),
+        band_hz=_band_hz(o, "band_hz"),
+        tune=o.get("tune"),
+        max_peak_S=o.get("max_peak_S"),
+        max_peak_T=o.get("max_peak_T"),
+        max_noise_rms_A=o.get("max_noise_rms_A"),
+        max_noise_peak_A=o.get("max_noise_peak_A"),
+        min_gain_margin_dB=o.get("min_gain_margin_dB"),
+        min_phase_margin_deg=o.get("min_phase_margin_deg"),
+        min_disk_gain_margin_dB=o.get("min_disk_gain_margin_dB"),
+        min_disk_phase_margin_deg=o.get("min_disk_phase_margin_deg"),
+        min_delay_margin_samples=o.get("min_delay_margin_samples"),
     )
     o.finish()
     return cfg

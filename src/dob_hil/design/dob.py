@@ -12,8 +12,10 @@ The DOB is itself a feedback loop. With e = x - x_bar and an input disturbance w
 so the disturbance estimate is ``-u_dist = (I + G(z))^-1 Kdist Lc H_w(z) w`` with the DOB loop gain
 ``G(z) = Kdist Lc H(z)`` and ``H(z) = C (zI - A0)^-1 Gam`` (the innovation's response to an input at
 the plant input, seen through the estimator). Without delay H_w = H and the estimate is
-``Q(z) w = G (I + G)^-1 w``: a complementary-sensitivity-shaped filter, which is why the paper calls T
-the Q-filter equivalent. Its stability is exactly rho(A0 - Gam Kdist Lc C) < 1 (Theorem 1).
+``Q(z) w = G (I + G)^-1 w``: the DOB's own complementary sensitivity, the disturbance-to-estimate
+filter (:func:`disturbance_estimate_response`; Q(1) = 0.5055 for the paper's gains). It is *not* the
+output loop's T = Lo (I + Lo)^-1, which the paper likens to a classical DOB's Q filter. Its stability
+is exactly rho(A0 - Gam Kdist Lc C) < 1 (Theorem 1).
 
 Design methods (``config.design.dob.method``; the gain direction is ``D = pinv(H(1))``, so that
 ``Kdist Lc = k D`` makes the DOB loop's DC gain ``G(1) = k I`` when H(1) has full row rank). What

@@ -215,14 +215,15 @@ def solve(
         return bounds.slack(m, period_s)
 
     best_x, best_m, solver, improved = problem.x0, start_merit, "none (start kept)", False
+    best_feasible = bool(np.min(bounds.slack(start_merit, period_s)) >= -1e-9)
 
     def consider(x: FloatArray, name: str) -> None:
-        nonlocal best_x, best_m, solver, improved
+        nonlocal best_x, best_m, solver, improved, best_feasible
         m = merit_of(x)
         if m is None or np.min(bounds.slack(m, period_s)) < -1e-9:
             return
-        if m.worst_rejection < best_m.worst_rejection * (1 - 1e-9):
-            best_x, best_m, solver, improved = np.asarray(x), m, name, True
+        if not best_feasible or m.worst_rejection < best_m.worst_rejection * (1 - 1e-9):
+            best_x, best_m, solver, improved, best_feasible = np.asarray(x), m, name, True, True
 
     cons = [{"type": "ineq", "fun": constraints}]
     res = scipy.optimize.minimize(
