@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from importlib import import_module
 
@@ -169,6 +170,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "_module", None):
         parser.print_help()
         return 2
+    command = args.command
+    # Warnings (e.g. a design violating a robustness bound) as one line each, like errors.
+    warnings.formatwarning = lambda message, *_a, **_k: f"dob-hil {command}: warning: {message}\n"
     try:
         module = import_module(args._module)
         run: Callable[[argparse.Namespace], int] = module.main

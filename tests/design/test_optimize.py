@@ -229,3 +229,19 @@ def test_stable_fraction_default_no_longer_lands_near_the_edge() -> None:
 def test_explicit_zero_kdist_with_the_dob_on_is_reported() -> None:
     r = _quiet(_plant_config("paper-step", "Kdist = [[0.0, 0.0]]\n"))
     assert any("the DOB does nothing" in w for w in r.warnings)
+
+
+def test_the_run_path_does_not_import_scipy_optimize() -> None:
+    """build_design (what run uses) of an explicit design needs no optimiser; only the methods that
+    search (and `design`'s locus) import scipy.optimize."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from dob_hil.config import load_config; from dob_hil.scenarios import scenario_path; "
+        "from dob_hil.design import build_design; "
+        "[build_design(load_config(scenario_path(n))) for n in ('paper-step', 'paper-step-optimized')]; "
+        "print('scipy.optimize' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.strip() == "False"

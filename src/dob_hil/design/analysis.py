@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from dob_hil.config import Config
 from dob_hil.design.build import DesignResult
-from dob_hil.design.dob import disturbance_estimate_response, locus_magnitudes
+from dob_hil.design.dob import METHOD_AIMS, disturbance_estimate_response, locus_magnitudes
 from dob_hil.design.linalg import CMatrix, Matrix, frequency_grid_hz, max_singular_value, unit_circle_points
 from dob_hil.design.loops import LoopResponse, design_loop_response, loop_at_a_time
 from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, ltr_report
@@ -296,6 +296,7 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
         "riccati": {"estimator": dare(res.estimator_dare), "feedback": dare(res.feedback_dare)},
         "dob": {
             "method": dob.method,
+            "method_aim": METHOD_AIMS.get(dob.method, ""),
             "direction": dob.direction.tolist(),
             "direction_kind": dob.direction_kind,
             "gain": dob.gain,

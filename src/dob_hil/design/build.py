@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -64,10 +65,11 @@ class DesignResult:
 
 
 def design_with_diagnostics(
-    config: Config, *, dob_enabled: bool | None = None, optimize: bool = False
+    config: Config, *, dob_enabled: bool | None = None, optimize: bool = False, locus: bool = True
 ) -> DesignResult:
     """Everything :func:`build_design` does, returning the diagnostics too. ``optimize`` runs the
-    ``optimize`` method whatever ``design.dob`` says (``dob-hil design --optimize``)."""
+    ``optimize`` method whatever ``design.dob`` says (``dob-hil design --optimize``); ``locus=False``
+    skips the DOB gain locus of an explicit Kdist (``build_design``: not needed to run)."""
     dob_on = config.run.dob_enabled if dob_enabled is None else dob_enabled
     plant, dc = config.plant, config.design
     n, m, p, d = plant.n_states, plant.n_inputs, plant.n_outputs, plant.input_delay_samples
@@ -119,7 +121,9 @@ def design_with_diagnostics(
         if optimized.tune == "all":
             sources["Lc"] = sources["Kc"] = "optimize (tune = all), started from " + sources["Lc"]
     else:
-        dob = design_dob(Phi, Gam, Gam_w, C, Lc, Kdist=dc.dob.Kdist, method=dc.dob.method, gain=dc.dob.gain)
+        dob = design_dob(
+            Phi, Gam, Gam_w, C, Lc, Kdist=dc.dob.Kdist, method=dc.dob.method, gain=dc.dob.gain, locus=locus
+        )
     if dob.method == "explicit":
         sources["Kdist"] = "explicit (design.dob.Kdist)"
     elif dob.method == "optimize":
@@ -133,6 +137,9 @@ def design_with_diagnostics(
     problems = unstable_parts(radii, dob_on)
     if problems:
         hint = ""
+        if any(s.startswith("dob:") for s in problems) and dob.k_max is None and not locus:
+            with contextlib.suppress(DesignError):  # the stable range for the message (error path only)
+                dob = design_dob(Phi, Gam, Gam_w, C, Lc, Kdist=dob.Kdist, method=None, gain=None)
         if any(s.startswith("dob:") for s in problems) and dob.k_max is not None:
             hint = (
                 f" (stable DOB gains along {dob.direction_kind}: 0 <= k < {dob.k_max:.4g}; "
@@ -174,4 +181,4 @@ def build_design(config: Config, *, dob_enabled: bool | None = None) -> Design:
     ``config.run.dob_enabled`` (e.g. ``--no-dob``): only with the DOB on must the dob matrix be stable.
     Raises DesignError for an unstable design (naming the matrix and its spectral radius) or a DARE
     without a solution, and ConfigError for invalid design settings."""
-    return design_with_diagnostics(config, dob_enabled=dob_enabled).design
+    return design_with_diagnostics(config, dob_enabled=dob_enabled, locus=False).design

@@ -65,6 +65,18 @@ DEFAULT_GAINS: dict[str, float] = {
     "stable_fraction": 0.25,
     "min_radius": 0.5,
 }
+# What each method chooses (printed by the report).
+METHOD_AIMS: dict[str, str] = {
+    "explicit": "Kdist given in the config",
+    "dc_loop_gain": "fixes the DOB loop's DC gain k (estimates k / (1 + k) of a constant disturbance); "
+    "optimises nothing",
+    "dc_estimate": "estimates the fraction `gain` of a constant disturbance (sigma_min(Q(1)) = gain)",
+    "stable_fraction": "k = gain x the edge of the stable range; a gain margin along the locus only",
+    "min_radius": "fastest estimate (least spectral radius) among gains estimating >= `gain` of a constant "
+    "disturbance",
+    "optimize": "best worst-case rejection over [design.optimize] band_hz within its robustness and noise "
+    "bounds",
+}
 # Methods whose gain is a fraction in (0, 1).
 FRACTION_METHODS = ("dc_estimate", "stable_fraction", "min_radius")
 # A DOB estimating less than this fraction of a constant disturbance (sigma_min(Q(1))) is reported.
@@ -247,13 +259,16 @@ def design_dob(
     method: str | None,
     gain: float | None,
     explicit_label: str = "explicit",
+    locus: bool = True,
 ) -> DobDesign:
     """Kdist given explicitly (``Kdist``, reported as ``explicit_label``) or designed by
     ``method``/``gain`` (see the module docstring).
 
     A design method requires a stable estimator (rho(Phi - Phi Lc C) < 1); an explicit Kdist does not
-    (Theorem 1 needs only the DOB matrix stable). Raises ConfigError for an unknown method or a gain
-    out of range, DesignError when the method cannot be applied or designs Kdist = 0.
+    (Theorem 1 needs only the DOB matrix stable). ``locus=False`` skips the stable-range and
+    fastest-gain search for an explicit Kdist (k_max None, min radius NaN): what ``run`` needs, without
+    scipy.optimize. Raises ConfigError for an unknown method or a gain out of range, DesignError when
+    the method cannot be applied or designs Kdist = 0.
     """
     A0 = estimator_matrix(Phi, C, Lc)
     N = Phi.shape[0]
@@ -291,7 +306,10 @@ def design_dob(
         Kd = np.zeros((Gam.shape[1], N))
     fraction = k
     k_ref = k if k > 0.0 and math.isfinite(k) and used_method not in FRACTION_METHODS else 1.0
-    if a0_stable:
+    if not locus and Kdist is not None:
+        k_max, k_hi = None, 1e3 * k_ref
+        k_best, rho_best = math.nan, math.nan
+    elif a0_stable:
         k_max = stable_edge(A0, Gam, C, direction, k_ref)
         k_hi = k_max if k_max is not None else 1e3 * k_ref
         k_best, rho_best = min_radius_gain(A0, Gam, C, direction, k_hi)

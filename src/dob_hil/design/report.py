@@ -116,7 +116,8 @@ def format_report(r: dict[str, Any]) -> str:
     lines += [
         "",
         "disturbance observer:",
-        f"  method {dob['method']}; Kdist Lc = k * D with D = {dob['direction_kind']} = "
+        f"  method {dob['method']}: {dob['method_aim']}",
+        f"  Kdist Lc = k * D with D = {dob['direction_kind']} = "
         f"{_inline(dob['direction'])}, k = {dob['gain']:.5g}",
         f"  stable for 0 <= k < {_num(dob['stable_gain_limit'], '.5g')}; "
         f"fastest at k = {dob['min_radius_gain']:.5g} "
