@@ -22,14 +22,21 @@ frequency_hz = 12.0
 """
 
 
-def _run(name: str, tmp_path: Path, *, twelve_hz: bool, noise_counts: float) -> tuple[Any, Any]:
+def _run(
+    name: str, tmp_path: Path, *, twelve_hz: bool, noise_counts: float, seed: int = 0, duration_s: float = 1.0
+) -> tuple[Any, Any]:
     text = scenario_path(name).read_text()
-    assert "noise_counts_std = 0.0\n" in text
-    text = text.replace("noise_counts_std = 0.0\n", f"noise_counts_std = {noise_counts}\n")
+    for old, new in (
+        ("noise_counts_std = 0.0\n", f"noise_counts_std = {noise_counts}\n"),
+        ("seed = 0\n", f"seed = {seed}\n"),
+        ("duration_s = 1.0\n", f"duration_s = {duration_s}\n"),
+    ):
+        assert old in text
+        text = text.replace(old, new)
     if twelve_hz:
         text = text.replace("\n[reference]", TWELVE_HZ + "\n[reference]")
     cfg = parse_config_text(text, source=scenario_path(name))
-    log = tmp_path / f"{name}-{twelve_hz}-{noise_counts}.mcap"
+    log = tmp_path / f"{name}-{twelve_hz}-{noise_counts}-{seed}.mcap"
     summary = run_session(cfg, RunOptions(log_path=log))
     assert summary.exit_reason == "completed"
     data = read_log(log)
@@ -53,15 +60,18 @@ def test_optimized_gains_reject_the_papers_disturbance_3x_better_in_lockstep(
 
 
 def test_optimized_gains_add_no_current_noise_in_lockstep(tmp_path: Path) -> None:
-    """Encoder noise of one count RMS: the command's deviation from the noise-free run."""
+    """Encoder noise of one count RMS: the command's deviation from the noise-free run, over 3 s and
+    two noise seeds (the sample RMS of one 1 s path scatters by a few %)."""
     rms = {}
     for name in ("paper-step", "paper-step-optimized"):
-        clean, _ = _run(name, tmp_path, twelve_hz=False, noise_counts=0.0)
-        noisy, _ = _run(name, tmp_path, twelve_hz=False, noise_counts=1.0)
+        clean, _ = _run(name, tmp_path, twelve_hz=False, noise_counts=0.0, duration_s=3.0)
         window = clean["time_ns"] >= 0.3e9
-        diff = noisy["u_cmd_a"][window, 0] - clean["u_cmd_a"][window, 0]
-        rms[name] = float(np.sqrt(np.mean(diff**2)))
-    # Equal RMS noise-to-current by design (0.0372 A per count); the simulated noise is one sample
-    # path, so allow its statistical spread.
-    assert rms["paper-step"] == pytest.approx(0.0372, rel=0.15)
-    assert rms["paper-step-optimized"] <= 1.1 * rms["paper-step"]
+        diffs = []
+        for seed in (1, 2):
+            noisy, _ = _run(name, tmp_path, twelve_hz=False, noise_counts=1.0, seed=seed, duration_s=3.0)
+            diffs.append(noisy["u_cmd_a"][window, 0] - clean["u_cmd_a"][window, 0])
+        rms[name] = float(np.sqrt(np.mean(np.concatenate(diffs) ** 2)))
+    # Equal RMS noise-to-current by design (0.0372 A per count RMS); the simulated encoder rounds
+    # noise and position to whole counts, which adds about 10 % to both.
+    assert rms["paper-step"] == pytest.approx(0.0372 * 1.1, rel=0.08)
+    assert rms["paper-step-optimized"] <= 1.03 * rms["paper-step"]
