@@ -38,7 +38,7 @@ from dob_hil.design.dob import DobDesign, design_dob
 from dob_hil.design.linalg import Matrix
 from dob_hil.design.riccati import DareSolution, solve_estimator_dare, solve_feedback_dare
 from dob_hil.design.robustness import DesignWarning, design_warnings
-from dob_hil.design.theorem1 import spectral_radii, unstable_parts
+from dob_hil.design.theorem1 import EXPRESSIONS, spectral_radii, unstable_parts
 from dob_hil.errors import DesignError
 
 if TYPE_CHECKING:
@@ -145,6 +145,9 @@ def design_with_diagnostics(
                 f" (stable DOB gains along {dob.direction_kind}: 0 <= k < {dob.k_max:.4g}; "
                 f"this design has k = {dob.gain:.4g})"
             )
+        rho_est = max(radii["estimator"])
+        if dob_on and rho_est >= 1.0:
+            hint += f" (the estimator alone is unstable too: rho({EXPRESSIONS['estimator']}) = {rho_est:.4g})"
         raise DesignError("; ".join(problems) + hint)
 
     design = Design(
