@@ -135,7 +135,7 @@ def test_optimize_method_key_and_unmeetable_bounds() -> None:
     opt = '[design.dob]\nmethod = "optimize"\n[design.optimize]\nband_hz = [4.0, 12.0]\n'
     r = _quiet(make_config(PAPER_PLANT, opt))
     assert r.dob.method == "optimize" and r.optimized is not None and np.any(r.design.Kdist)
-    bad = make_config(PAPER_PLANT, opt + "max_peak_S = 0.5\n")
+    bad = make_config(PAPER_PLANT, opt + "max_peak_T = 0.9\n")  # |T(1)| = 1 for this plant
     with pytest.raises(DesignError, match=r"design\.optimize: no design meets the bounds"):
         _quiet(bad)
 

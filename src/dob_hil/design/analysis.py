@@ -223,6 +223,11 @@ def _complex_list(M: Matrix) -> list[list[float]]:
     return [[float(e.real), float(e.imag)] for e in ev]
 
 
+def _finite_rows(M: Matrix) -> list[list[float | None]]:
+    """A matrix as JSON rows, a non-finite entry (Q(1) of a DOB matrix with a pole at 1) as null."""
+    return [[float(v) if math.isfinite(v) else None for v in row] for row in np.asarray(M).tolist()]
+
+
 def _finite(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
@@ -305,13 +310,13 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
             "min_radius": dob.min_radius,
             "H1": dob.H1.tolist(),
             "dc_loop_gain": dob.dc_loop_gain.tolist(),
-            "dc_disturbance_estimate_gain": dob.dc_estimate_gain.tolist(),
+            "dc_disturbance_estimate_gain": _finite_rows(dob.dc_estimate_gain),
         },
         "loop_dob_on": _loop_dict(a.dob_on, d.period_s),
         "loop_dob_off": _loop_dict(a.dob_off, d.period_s),
         "disturbance_estimate_filter": {
             "definition": "Q(z): input disturbance w -> DOB estimate -u_dist (not T)",
-            "Q1": dob.dc_estimate_gain.tolist(),
+            "Q1": _finite_rows(dob.dc_estimate_gain),
             "peak": float(np.max(max_singular_value(a.Q))),
             "bandwidth_Hz": _bandwidth(a),
         },

@@ -344,8 +344,11 @@ def design_dob(
                 "choose another method or give Kdist"
             )
     KdLc = Kd @ Lc
-    Q1 = dc_estimate_gain(Phi, Gam, Gam_w, C, Lc, Kdist=Kd)
-    q1 = float(np.linalg.svd(Q1, compute_uv=False)[-1])
+    try:
+        Q1 = dc_estimate_gain(Phi, Gam, Gam_w, C, Lc, Kdist=Kd)
+    except np.linalg.LinAlgError:  # the DOB matrix has an eigenvalue at 1: Theorem 1 refuses it
+        Q1 = np.full((Gam.shape[1], Gam_w.shape[1]), np.nan)
+    q1 = float(np.linalg.svd(Q1, compute_uv=False)[-1]) if np.all(np.isfinite(Q1)) else math.nan
     if not np.any(KdLc):
         notes.append("design.dob: Kdist Lc = 0: the DOB does nothing (it estimates no disturbance)")
     elif q1 < MIN_DC_ESTIMATE:
