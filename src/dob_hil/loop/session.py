@@ -34,6 +34,7 @@ from dob_hil.link.busload import refuse_overload
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
+from dob_hil.loop.host_clocked import run_host_clocked_lockstep, run_host_clocked_realtime
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
 from dob_hil.profiles import Clocking, DriveProfile, SimulatedCounterpart, get_profile
@@ -292,10 +293,11 @@ def _run_with_log(
             if mode == "lockstep":
                 assert drive is not None
                 link.enable_lockstep(drive.service)
-                exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
+                if profile.clocking is Clocking.HOST:
+                    exit_reason = run_host_clocked_lockstep(cycle, link, drive, log, limits, flag, progress)  # type: ignore[arg-type]
+                else:
+                    exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
             else:
-                if profile.clocking is not Clocking.DRIVE:
-                    raise DobHilError(f"the {profile.name} profile has no real-time runner yet")
                 if drive is not None:
                     # the embedded drive's threads share this process's GIL with the loop: hand
                     # it over every 100 us instead of 5 ms (timing stays indicative only; a drive
@@ -303,7 +305,10 @@ def _run_with_log(
                     sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
                     drive.start()
                 link.enable(int(options.enable_timeout_s * 1e9))
-                exit_reason = run_realtime(cycle, link, log, limits, flag, progress=progress)
+                if profile.clocking is Clocking.HOST:
+                    exit_reason = run_host_clocked_realtime(cycle, link, log, limits, flag, progress=progress)  # type: ignore[arg-type]
+                else:
+                    exit_reason = run_realtime(cycle, link, log, limits, flag, progress=progress)
     except DriveFault as exc:
         exit_reason = f"drive fault: {exc}"
         log.event(time.monotonic_ns(), "error", "run_aborted", str(exc))
