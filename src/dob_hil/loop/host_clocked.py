@@ -45,7 +45,7 @@ from dob_hil.loop.cycle import ControlCycle
 from dob_hil.loop.runners import LockstepDrive, LoopLimits, StopRequest
 
 DEFAULT_SPIN_NS = 100_000
-DEFAULT_ANSWER_FRACTION = 0.6  # of the period: how long the runner waits for the answer
+DEFAULT_ANSWER_FRACTION = 0.75  # of the period: how long the runner waits for the answer
 PROGRESS_EVERY = 4096
 
 
@@ -110,6 +110,8 @@ def run_host_clocked_lockstep(
             log.flush()
             if progress is not None:
                 progress(k)
+    if missing_run:
+        _log_gap(log, time.monotonic_ns(), limits.n_samples, missing_run)
     service()  # let the drive take the last command
     return "completed"
 
@@ -184,4 +186,6 @@ def run_host_clocked_realtime(
             overrun = True
         if progress is not None and k % 3333 == 0:
             progress(k)
+    if missing_run:
+        _log_gap(log, clock_ns(), limits.n_samples, missing_run)
     return "completed"
