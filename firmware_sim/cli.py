@@ -23,6 +23,7 @@ import can
 from dob_hil.config import load_config
 from dob_hil.errors import DobHilError
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
+from firmware_sim.cia402 import SimulatedCia402Drive
 from firmware_sim.drive import SimulatedDrive
 from firmware_sim.plant import check_single_axis
 from firmware_sim.process import READY_TEXT
@@ -98,9 +99,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     sink = UdpTruthSender(args.truth_port) if args.truth_port is not None else None
     status = 0
     try:
-        drive = SimulatedDrive(
-            bus, config, clock="realtime", truth_sink=sink, spin_ns=round(args.spin_us * 1000)
-        )
+        drive: SimulatedDrive | SimulatedCia402Drive
+        if config.drive.profile == "cia402":  # the host's SYNC is this drive's clock: no timer to spin
+            drive = SimulatedCia402Drive(bus, config, clock="realtime", truth_sink=sink)
+        else:
+            drive = SimulatedDrive(
+                bus, config, clock="realtime", truth_sink=sink, spin_ns=round(args.spin_us * 1000)
+            )
         gc.freeze()  # long-lived objects out of the collector's way (gen-2 pauses of several ms)
         # OS plumbing only (no controller code): the drive's threads inherit these settings
         rt = apply_rt_settings(RtSettings(sched_fifo=args.sched_fifo, cpus=tuple(args.cpu or ())))
@@ -122,13 +127,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 drive.check()
         finally:
             drive.close()
-        stats = drive.stats
-        print(
-            f"{PROG}: stopped after {stats.samples} samples "
-            f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
-            f"{stats.commands_accepted} commands, {stats.overruns} overruns)",
-            file=sys.stderr,
-        )
+        if isinstance(drive, SimulatedCia402Drive):
+            print(f"{PROG}: stopped: {drive.stats}", file=sys.stderr)
+        else:
+            stats = drive.stats
+            print(
+                f"{PROG}: stopped after {stats.samples} samples "
+                f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
+                f"{stats.commands_accepted} commands, {stats.overruns} overruns)",
+                file=sys.stderr,
+            )
     except DobHilError as exc:
         status = _fail(2, str(exc))
     except Exception as exc:

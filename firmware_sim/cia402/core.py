@@ -35,6 +35,7 @@ Behaviour (the firmware's contract):
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -236,7 +237,7 @@ class Cia402Core:
             if len(data) == 8 and self.node.nmt.state != "STOPPED":
                 self.stats.sdo_requests += 1
                 self._now_ns = now_ns
-                self.network.notify(can_id, bytearray(data), now_ns * 1e-9)
+                self._on_sdo(data, now_ns)
                 return
         elif self.node.nmt.state == "OPERATIONAL":
             self.layouts.refresh()
@@ -245,6 +246,20 @@ class Cia402Core:
                 self._on_rpdo(layout, data, now_ns)
                 return
         self.stats.frames_ignored += 1
+
+    def _on_sdo(self, data: bytes, now_ns: int) -> None:
+        """canopen's SDO server answers; what it cannot (it raises) is aborted here, not fatal."""
+        if data[0] & 0xE0 == 0xE0:  # command specifier 7 does not exist
+            self._sdo_abort(data, ob.ABORT_INVALID_COMMAND)
+            return
+        try:
+            self.network.notify(SDO_RX_BASE + self.node_id, bytearray(data), now_ns * 1e-9)
+        except (struct.error, TypeError):  # e.g. a segment request with no transfer in progress
+            self._sdo_abort(data, ob.ABORT_INVALID_COMMAND)
+
+    def _sdo_abort(self, request: bytes, code: int) -> None:
+        payload = bytes([0x80]) + request[1:4] + code.to_bytes(4, "little")
+        self.network.send_message(0x580 + self.node_id, payload)
 
     def _on_rpdo(self, layout: Layout, data: bytes, now_ns: int) -> None:
         if len(data) < layout.size:

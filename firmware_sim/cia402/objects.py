@@ -60,6 +60,7 @@ FAULT_REGISTER = {
 }
 
 # --- SDO abort codes (CiA 301) -----------------------------------------------------------------
+ABORT_INVALID_COMMAND = 0x05040001
 ABORT_UNSUPPORTED_ACCESS = 0x06010000
 ABORT_NOT_IN_OD = 0x06020000
 ABORT_NOT_MAPPABLE = 0x06040041

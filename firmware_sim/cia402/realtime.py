@@ -7,8 +7,9 @@ integrates the physics up to when it arrived, not to a nominal ``k Ts``: a real 
 wait for a late SYNC, so SYNC jitter shows up as sampling jitter, as on hardware; the sample index
 is the SYNC's position on the nominal grid (``round((t - t_first) / period)``, at least one more
 than the last). Between frames the thread wakes for the drive's own timers (heartbeat producer,
-SYNC-loss watchdog). TPDOs leave after ``sim.latency_us`` + jitter (seeded) or are lost with
-``sim.loss_probability``.
+SYNC-loss watchdog), judged up to the arrival of the last frame read, or up to now when none is
+queued (so a stall of this thread with SYNCs waiting in the socket is not a SYNC loss). TPDOs
+leave after ``sim.latency_us`` + jitter (seeded) or are lost with ``sim.loss_probability``.
 
 An exception in the thread stops it; :meth:`check` and :meth:`stop` re-raise it in the caller.
 """
@@ -91,12 +92,15 @@ class Cia402Realtime:
             msg = recv(timeout)
             now = time.monotonic_ns()
             with self.lock:
-                if msg is not None:
+                if msg is None:
+                    core.tick(now - t0)  # the queue is empty: nothing arrived until now
+                else:
+                    t = arrival_ns(msg, now) - t0
                     if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                         core.stats.frames_ignored += 1
                     else:
-                        core.on_frame(msg.arbitration_id, bytes(msg.data), arrival_ns(msg, now) - t0)
-                core.tick(now - t0)
+                        core.on_frame(msg.arbitration_id, bytes(msg.data), t)
+                    core.tick(t)  # timers only up to this frame: later ones may already be queued
                 tpdos = core.take_tpdos()
                 truth = core.take_truth()
             if tpdos:
