@@ -195,6 +195,7 @@ def master_rig(config: Config | None = None) -> Iterator[MasterRig]:
     node.TIMEOUT_SWITCH_STATE_SINGLE = TIMEOUT_S
     node.TIMEOUT_CHECK_TPDO = TIMEOUT_S
     node.TIMEOUT_RESET_FAULT = TIMEOUT_S
+    node.TIMEOUT_SWITCH_OP_MODE = TIMEOUT_S
     node.sdo.RESPONSE_TIMEOUT = TIMEOUT_S
     network.add_node(node)
     emcys: list[canopen.emcy.EmcyError] = []
