@@ -48,6 +48,9 @@ class FakeLink:
         fault = self.fault_at is not None and k >= self.fault_at
         return Feedback(self.clock(), k & 0xFF, (k,), (k,), (k / 1e4,), not fault, fault, False)
 
+    def drain(self) -> None:
+        pass
+
     def describe_fault(self, wait_ns: int = 0) -> str:
         return "node 1: FAULT (statusword 0x0008), EMCY 0x2310 (continuous over current), register 0x03"
 

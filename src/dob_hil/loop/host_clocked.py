@@ -10,6 +10,9 @@ may send remote requests):
   still queued from the previous sample are read (and judged stale) first.
 - ``receive_feedback(timeout_ns)``: the answer to the last trigger, or None (``DriveLink``).
 - ``quantize`` / ``send_command``: as for every ``DriveLink``; the command acts at the next trigger.
+- ``drain() -> None``: read and judge the frames already queued, without blocking; the real-time
+  runner calls it after each sample, before sleeping, so that little is left to read between a
+  deadline and its trigger.
 - ``describe_fault(wait_ns) -> str``: what the drive said about its fault (an EMCY code, an error
   register...), for the exit reason.
 
@@ -54,6 +57,9 @@ class HostClockedLink(DriveLink, Protocol):
 
     def send_trigger(self) -> int:
         """Trigger one sample (SYNC, RTR, ...); returns the send time in ns. Raises on a failed send."""
+
+    def drain(self) -> None:
+        """Read and judge the frames already queued (non-blocking)."""
 
     def describe_fault(self, wait_ns: int = 0) -> str:
         """The drive's own account of its fault (read within ``wait_ns``), for the exit reason."""
@@ -171,6 +177,7 @@ def run_host_clocked_realtime(
                 raise _fault(link, k, 20 * period_ns)
             cycle.on_feedback(k, deadline_ns, fb, lateness_ns, overrun)
         log.flush()
+        link.drain()
         k += 1
         overrun = False
         late_by_ns = clock_ns() - (t0_ns + k * period_ns)

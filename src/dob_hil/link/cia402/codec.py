@@ -102,12 +102,20 @@ class PowerState(enum.Enum):
         return self.value[1]
 
 
-def decode_state(statusword: int) -> PowerState | None:
-    """The state a statusword codes, or None for a combination the standard does not define."""
+def _state_of(low_bits: int) -> PowerState | None:
     for state in PowerState:
-        if statusword & state.mask == state.pattern:
+        if low_bits & state.mask == state.pattern:
             return state
     return None
+
+
+_STATE_MASK: Final = 0x006F  # every state's mask is within these bits
+_STATE_TABLE: Final = tuple(_state_of(bits) for bits in range(_STATE_MASK + 1))
+
+
+def decode_state(statusword: int) -> PowerState | None:
+    """The state a statusword codes, or None for a combination the standard does not define."""
+    return _STATE_TABLE[statusword & _STATE_MASK]
 
 
 # the command that moves each state one step towards OPERATION_ENABLED (CiA 402 figure 13);

@@ -510,7 +510,7 @@ class Cia402DriveLink:
         """Send one SYNC (the drive samples and applies on it); returns clock_ns() after sending.
 
         Frames still queued are read first: a TPDO1 among them answered an older SYNC (stale)."""
-        self._drain()
+        self.drain()
         self._awaiting_tpdo = True
         if self._options.sync_counter:
             self._sync_counter = self._sync_counter % codec.SYNC_COUNTER_MAX + 1
@@ -521,7 +521,8 @@ class Cia402DriveLink:
         self.stats.syncs += 1
         return self._clock_ns()
 
-    def _drain(self) -> None:
+    def drain(self) -> None:
+        """Read the frames already queued (non-blocking); a pending SYNC's answer is missed from now."""
         recv = self._bus.recv
         if self._awaiting_tpdo:
             self.stats.missed_feedback += 1
@@ -724,6 +725,8 @@ class Cia402DriveLink:
             )
 
     def _note_statusword(self, statusword: int, source: str, now_ns: int | None = None) -> PowerState | None:
+        if statusword == self._statusword:
+            return self._state
         state = codec.decode_state(statusword)
         self._statusword = statusword
         if state is not self._state:
