@@ -526,6 +526,7 @@ class Cia402Core:
 
     # --- power state and current --------------------------------------------------------------------
     def _controlword(self, controlword: int, t_ns: int) -> None:
+        self._integrate_to(t_ns)  # the old state's current up to now (and the plant origin after)
         before = self.power.state
         after = self.power.apply(controlword)
         if before is PowerState.FAULT and after is not PowerState.FAULT:
