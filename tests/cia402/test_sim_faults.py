@@ -83,26 +83,26 @@ def test_leaving_operational_while_enabled_faults() -> None:
         assert rig.drive.state is PowerState.FAULT
 
 
+def _periods_with_faults(faults: dict[str, float], n: int) -> tuple[list[list], PowerState, int]:  # type: ignore[type-arg]
+    """n SYNC periods with a torque RPDO each, under ``[sim.faults]``: frames per SYNC, end state, SYNCs."""
+    with raw_rig(make_config(**{"sim.faults": faults})) as rig:
+        rig.enable()
+        per_sync = []
+        for _ in range(n):
+            rig.exchange(RPDO1, b"\x0f\x00\x64\x00")
+            per_sync.append(rig.sync())
+        return per_sync, rig.drive.state, rig.drive.stats.syncs
+
+
 def test_injected_fault_and_silence_from_sim_faults() -> None:
     period_s = 300e-6
-    config = make_config(**{"sim.faults": {"fault_at_s": 5 * period_s}})
-    with raw_rig(config) as rig:
-        rig.enable()
-        frames = []
-        for _ in range(8):
-            rig.exchange(RPDO1, b"\x0f\x00\x64\x00")
-            frames += rig.sync()
-        assert _emcys(frames) == ["1023030000000000"]  # 0x2310 over current, register generic|current
-        assert rig.drive.state is PowerState.FAULT
-    config = make_config(**{"sim.faults": {"silent_at_s": 4 * period_s}})
-    with raw_rig(config) as rig:
-        rig.enable()
-        counts = []
-        for _ in range(8):
-            rig.exchange(RPDO1, b"\x0f\x00\x64\x00")
-            counts.append(sum(m.arbitration_id == TPDO1 for m in rig.sync()))
-        assert counts[:4] == [1, 1, 1, 1] and counts[4:] == [0, 0, 0, 0]
-        assert rig.drive.stats.syncs == 8  # it still listens
+    per_sync, state, _ = _periods_with_faults({"fault_at_s": 5 * period_s}, 8)
+    # 0x2310 over current, register generic|current
+    assert _emcys([m for frames in per_sync for m in frames]) == ["1023030000000000"]
+    assert state is PowerState.FAULT
+    per_sync, _, syncs = _periods_with_faults({"silent_at_s": 4 * period_s}, 8)
+    tpdos = [sum(m.arbitration_id == TPDO1 for m in frames) for frames in per_sync]
+    assert tpdos == [1, 1, 1, 1, 0, 0, 0, 0] and syncs == 8  # silent, but it still listens
 
 
 def test_canopen_emcy_consumer_decodes_the_sync_loss() -> None:
