@@ -10,7 +10,8 @@ Behaviour (the firmware's contract):
 
 * NMT: boot-up on power-on and after reset node / reset communication, then PRE-OPERATIONAL;
   start / stop / enter pre-operational. SDO in PRE-OPERATIONAL and OPERATIONAL, PDOs only in
-  OPERATIONAL, EMCY not in STOPPED. Reset node restores the whole object dictionary, reset
+  OPERATIONAL, EMCY not in STOPPED; a SYNC advances the drive's clock in every NMT state (the
+  simulated plant runs on whatever the bus does). Reset node restores the whole object dictionary, reset
   communication the 0x1000..0x1FFF area. Leaving OPERATIONAL while OPERATION ENABLED faults the
   drive (EMCY 0x8100).
 * SYNC (COB-ID 0x1005, DLC 0 or 1 with the counter; a DLC that does not match 0x1019 sends EMCY
@@ -86,7 +87,6 @@ class Cia402Stats:
     frames_ignored: int = 0
     missed_syncs: int = 0  # periods that passed without a SYNC while the watchdog was armed
     missed_rpdos: int = 0  # SYNCs without an RPDO before them while the watchdog was armed
-    overruns: int = 0  # real time: frames handled late (kept for the counterpart's interface)
 
 
 def _encoder_ratio(counts_per_unit: float) -> tuple[int, int]:
