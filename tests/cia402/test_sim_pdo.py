@@ -6,7 +6,7 @@ import struct
 
 import canopen
 import pytest
-from sim_support import NODE, TIMEOUT_S, master_rig, raw_rig, sdo_request
+from sim_support import NODE, TIMEOUT_S, make_config, master_rig, raw_rig, sdo_request
 
 from firmware_sim.cia402.objects import shipped_eds
 
@@ -173,3 +173,32 @@ def test_rpdo_length_errors_send_emcy() -> None:
         assert [(m.arbitration_id, bytes(m.data).hex()) for m in long] == [(EMCY, "2082000000000000")]
         rig.sync()
         assert rig.drive.state.value == "READY TO SWITCH ON"  # processed
+
+
+def test_sync_counter_length_checked_against_0x1019() -> None:
+    with raw_rig() as rig:
+        rig.exchange(0x000, bytes([0x01, NODE]))
+        frames = rig.exchange(0x80, b"\x01")  # a counter while 0x1019 = 0: EMCY 0x8240 once, still a SYNC
+        assert [bytes(m.data).hex() for m in frames if m.arbitration_id == EMCY] == ["4082000000000000"]
+        assert any(m.arbitration_id == TPDO1 for m in frames)
+        assert not any(m.arbitration_id == EMCY for m in rig.exchange(0x80, b"\x02"))
+        assert rig.write(0x1019, 0, 240, 1)[0] == 0x60
+        assert not any(m.arbitration_id == EMCY for m in rig.exchange(0x80, b"\x03"))
+        frames = rig.exchange(0x80, b"\x04\x00")  # DLC 2 is no SYNC at all
+        assert [bytes(m.data).hex() for m in frames if m.arbitration_id == EMCY] == ["4082000000000000"]
+        assert rig.drive.stats.syncs == 3
+
+
+def test_tpdo_loss_is_seeded_and_lockstep_is_deterministic() -> None:
+    def run() -> tuple[list[int], list[tuple[float, ...]]]:
+        with raw_rig(make_config(sim={"loss_probability": 0.3, "seed": 5})) as rig:
+            rig.enable()
+            got = []
+            for k in range(60):
+                got.append(sum(m.arbitration_id == TPDO1 for m in rig.sync()))
+                rig.exchange(RPDO1, b"\x0f\x00" + (k * 7 % 300).to_bytes(2, "little"))
+            return got, [t.state for t in rig.truths]
+
+    first, second = run(), run()
+    assert first == second
+    assert 0 < sum(first[0]) < 60  # some lost, not all
