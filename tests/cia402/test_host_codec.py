@@ -3,6 +3,7 @@ PDO maps and EMCY consumer (an implementation that is not ours)."""
 
 from __future__ import annotations
 
+import functools
 import struct
 
 import canopen
@@ -10,7 +11,7 @@ import pytest
 from canopen.emcy import EmcyConsumer
 from canopen.nmt import NMT_COMMANDS
 from canopen.profiles.p402 import State402
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dob_hil.errors import ProtocolError
@@ -142,6 +143,7 @@ def test_cob_ids_are_the_predefined_connection_set() -> None:
     assert node.tpdo.map[2].predefined_cob_id == ids["TPDO2"]
 
 
+@settings(deadline=None)  # a loaded CI machine: no per-example time limit
 @given(st.integers(0, 0xFFFF), st.integers(0, 0xFF), st.binary(min_size=5, max_size=5))
 def test_emcy_round_trip_and_canopen_agrees(code: int, register: int, manufacturer: bytes) -> None:
     data = codec.encode_emcy(Emcy(code, register, manufacturer))
@@ -168,6 +170,7 @@ def test_emcy_description_and_bad_length() -> None:
         codec.decode_emcy(bytes(7))
 
 
+@functools.cache
 def _maps() -> canopen.RemoteNode:
     """canopen's own PDO maps, mapped the way the host maps the drive (an independent decoder)."""
     node = canopen.RemoteNode(NODE, str(DEFAULT_EDS))
@@ -179,6 +182,7 @@ def _maps() -> canopen.RemoteNode:
     return node
 
 
+@settings(deadline=None)  # a loaded CI machine: no per-example time limit
 @given(st.integers(0, 0xFFFF), st.integers(-32768, 32767))
 def test_rpdo1_decoded_by_canopen(controlword: int, torque: int) -> None:
     data = codec.encode_rpdo1(controlword, torque)
@@ -191,6 +195,7 @@ def test_rpdo1_decoded_by_canopen(controlword: int, torque: int) -> None:
     assert codec.decode_rpdo1(data) == (controlword, torque)
 
 
+@settings(deadline=None)  # a loaded CI machine: no per-example time limit
 @given(st.integers(0, 0xFFFF), st.integers(-(2**31), 2**31 - 1), st.integers(-(2**31), 2**31 - 1))
 def test_tpdos_encoded_by_canopen_decode(statusword: int, position: int, velocity: int) -> None:
     node = _maps()
