@@ -2,7 +2,7 @@
 
 One receive thread blocks on the bus and acts on each frame at its **arrival instant** on the
 drive's monotonic clock (the bus timestamp converted to it when plausible, else the time it was
-read), ``t = arrival - t0`` with ``t0`` taken at :meth:`Cia402Realtime.start`. A SYNC therefore
+read), ``t = arrival - t0`` (to 10 us) with ``t0`` taken at :meth:`Cia402Realtime.start`. A SYNC therefore
 integrates the physics up to when it arrived, not to a nominal ``k Ts``: a real plant does not
 wait for a late SYNC, so SYNC jitter shows up as sampling jitter, as on hardware; the sample index
 is the SYNC's position on the nominal grid (``round((t - t_first) / period)``, at least one more
@@ -26,7 +26,13 @@ from firmware_sim.cia402.core import Cia402Core, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
 RECV_POLL_S = 0.05  # the thread notices stop() within this
-TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now are not trusted
+# bus timestamps further than this from now are not trusted (another clock); frames that waited in
+# the socket while this thread was held up keep their own arrival within it
+TIMESTAMP_PLAUSIBLE_NS = 1_000_000_000
+# frames act at their arrival rounded to this: the plant caches one matrix exponential per offset
+# inside a sub-step, so at its 1 us resolution the first SYNCs of a run would each compute new ones
+# (tens of ms on a loaded machine); 10 us keeps that to a handful
+ARRIVAL_RESOLUTION_NS = 10_000
 
 
 def arrival_ns(msg: can.Message, now_mono_ns: int) -> int:
@@ -95,7 +101,7 @@ class Cia402Realtime:
                 if msg is None:
                     core.tick(now - t0)  # the queue is empty: nothing arrived until now
                 else:
-                    t = arrival_ns(msg, now) - t0
+                    t = round((arrival_ns(msg, now) - t0) / ARRIVAL_RESOLUTION_NS) * ARRIVAL_RESOLUTION_NS
                     if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                         core.stats.frames_ignored += 1
                     else:

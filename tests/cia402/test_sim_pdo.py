@@ -6,7 +6,7 @@ import struct
 
 import canopen
 import pytest
-from sim_support import NODE, TIMEOUT_S, make_config, master_rig, raw_rig, sdo_request
+from sim_support import NODE, make_config, master_rig, raw_rig, sdo_request
 
 from firmware_sim.cia402.objects import shipped_eds
 
@@ -55,11 +55,13 @@ def test_remapping_through_canopen_and_frames_decoded_by_its_maps() -> None:
             node.sdo[0x6040].raw = cw
         node.rpdo[1]["Controlword"].raw = 0x0F
         node.rpdo[1]["Target torque"].raw = 120
+        received: list[dict[int, int]] = []  # decoded by canopen's map (no wait_for_reception race)
+        node.tpdo[1].add_callback(lambda m: received.append({v.index: v.raw for v in m}))
         for k in range(3):
             node.rpdo[1].transmit()
             node.network.sync.transmit()
-            assert node.tpdo[1].wait_for_reception(TIMEOUT_S) is not None
-            values = {v.index: v.raw for v in node.tpdo[1]}
+            rig.wait_for(lambda k=k: len(received) > k, "the TPDO of the SYNC")
+            values = received[k]
             assert values[0x6041] == 0x1237  # operation enabled, remote, follows the command
             assert values[0x6077] == (0 if k == 0 else 120)  # the setpoint acts from the SYNC after it
         rig.wait_for(lambda: sum(m.arbitration_id == TPDO1 for m in rig.frames) >= 3, "three TPDO1")
