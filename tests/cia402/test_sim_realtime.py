@@ -120,3 +120,40 @@ def test_standalone_process_is_a_cia402_slave_over_udp_multicast(tmp_path: Path)
         assert drive.exit_status == 0, drive.stderr_text
     finally:
         network.disconnect()
+
+
+def test_real_time_core_samples_at_the_sync_arrival_and_judges_loss_on_its_clock() -> None:
+    """The real-time clock's firmware without the thread: frames handed over with their arrival."""
+    from firmware_sim.cia402.core import Cia402Core
+
+    config = make_config(drive={"watchdog_periods": 4}, sim={"disturbance": None})
+    channel = unique_channel()
+    host = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        core = Cia402Core(bus, config, lockstep=False, want_truth=True)
+        core.power_on()
+        for cw in (0x06, 0x07, 0x0F):
+            core.on_frame(0x601, bytes([0x2B, 0x40, 0x60, 0, cw, 0, 0, 0]), 1_000)
+        core.on_frame(0x601, bytes([0x2F, 0x60, 0x60, 0, 10, 0, 0, 0]), 1_000)
+        core.on_frame(0x000, bytes([0x01, 1]), 1_000)
+        indices = []
+        for arrival_ns in (50_000, 360_000, 640_000, 1_560_000):  # jitter, then two SYNCs lost
+            core.on_frame(0x201, bytes([0x0F, 0, 100, 0]), arrival_ns - 20_000)
+            core.on_frame(0x80, b"", arrival_ns)
+            assert core.time_ns == arrival_ns  # integrated to the arrival, not to k Ts
+            indices.append(core.period_index)
+            core.tick(arrival_ns)
+        assert indices == [0, 1, 2, 5]  # the nominal 300 us grid from the first SYNC
+        assert core.take_truth() is not None
+        core.tick(1_560_000 + 3 * 300_000)  # three periods without SYNC: not yet
+        assert core.power.state is PowerState.OPERATION_ENABLED
+        core.tick(1_560_000 + 4 * 300_000 + 1)
+        assert core.power.state is PowerState.FAULT and core.error_code == 0x8100
+        assert core.time_ns == 1_560_000 + 4 * 300_000  # the current was cut at the deadline
+        core.on_frame(0x80, b"", 3_000_000)
+        truth = core.take_truth()
+        assert truth is not None and truth.applied_current_A == 0.0 and truth.time_ns == 3_000_000
+    finally:
+        host.shutdown()
+        bus.shutdown()
