@@ -4,6 +4,7 @@ an exact ZOH check, torque quantization and clamping, and the timing contract at
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import random
 
 import can
@@ -173,3 +174,20 @@ def test_disable_cuts_the_current_at_once() -> None:
         rig.write(0x6040, 0, 0x07, 2)  # disable operation by SDO between SYNCs
         rig.sync()
         assert rig.truths[-1].applied_current_A == 0.0
+
+
+def test_velocity_actual_is_the_position_difference_per_second() -> None:
+    with raw_rig(make_config(sim={"disturbance": None})) as rig:
+        rig.enable()
+        positions, velocities = [], []
+        for _ in range(20):
+            rig.exchange(RPDO1, _rpdo(0x0F, 500))
+            for m in rig.sync():
+                data = bytes(m.data)
+                if m.arbitration_id == TPDO1:
+                    positions.append(int.from_bytes(data[2:6], "little", signed=True))
+                elif m.arbitration_id == 0x280 + NODE:  # TPDO2 default: statusword, velocity
+                    velocities.append(int.from_bytes(data[2:6], "little", signed=True))
+        period_s = 300e-6
+        expected = [round((b - a) / period_s) for a, b in itertools.pairwise(positions)]
+        assert velocities[1:] == expected and expected[-1] > 0
