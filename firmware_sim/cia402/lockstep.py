@@ -1,13 +1,13 @@
 """Lockstep clock of the simulated CiA 402 drive: a SYNC advances simulated time by one period.
 
-:meth:`Cia402Lockstep.service` drains every frame pending on the drive's bus end (non-blocking)
-and acts on each in order, in the calling thread: SDO requests are answered at once, NMT commands
-and RPDOs taken, and a SYNC integrates one period (none for the first SYNC, which is t = 0),
-samples and sends the synchronous TPDOs. It is safe to call with nothing pending and from a
-helper thread (a lock serialises callers), so a host whose SDO client blocks can keep the drive
-serviced while it configures it. :meth:`advance_period` lets one period pass without a SYNC.
-TPDO loss (``sim.loss_probability``, seeded) applies; latency and jitter need a wall clock and
-are ignored, as in the native lockstep drive.
+:meth:`Cia402Lockstep.service` reads the frames pending on the drive's bus end (non-blocking) up
+to and including a SYNC and acts on each in order, in the calling thread: SDO requests are
+answered at once, NMT commands and RPDOs taken, and a SYNC integrates one period (none for the
+first SYNC, which is t = 0), samples and sends the synchronous TPDOs. It is safe to call with
+nothing pending and from a helper thread (a lock serialises callers), so a host whose SDO client
+blocks can keep the drive serviced while it configures it. :meth:`advance_period` lets one
+period pass without a SYNC. TPDO loss (``sim.loss_probability``, seeded) applies; latency and
+jitter need a wall clock and are ignored, as in the native lockstep drive.
 """
 
 from __future__ import annotations
@@ -33,7 +33,12 @@ class Cia402Lockstep:
             self.core.power_on()  # the boot-up message goes out now
 
     def service(self) -> int:
-        """Act on every frame pending on the bus; returns how many were read."""
+        """Act on the frames pending on the bus, up to and including a SYNC; returns how many were read.
+
+        Stopping after a SYNC (rather than reading until the queue is empty) saves an empty receive
+        per period; frames sent after the SYNC are handled by the next call, as a real drive
+        handles them in its next cycle.
+        """
         recv, core = self.bus.recv, self.core
         n = 0
         with self.lock:
@@ -45,8 +50,11 @@ class Cia402Lockstep:
                 if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                     core.stats.frames_ignored += 1
                     continue
-                core.on_frame(msg.arbitration_id, bytes(msg.data), core.time_ns)
+                aid = msg.arbitration_id
+                core.on_frame(aid, bytes(msg.data), core.time_ns)
                 self._flush()
+                if aid == core.sync_cob_id:
+                    return n
 
     def advance_period(self) -> None:
         """One period without a SYNC (the SYNC-loss watchdog counts it)."""
