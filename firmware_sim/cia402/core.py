@@ -179,13 +179,19 @@ class Cia402Core:
         self.max_torque = self._raw(ob.MAX_TORQUE)
         self.power.quick_stop_option = self._raw(ob.QUICK_STOP_OPTION)
         cycle_us = self._raw(ob.CYCLE_PERIOD)
-        self.period_ns = cycle_us * 1000 if cycle_us else self.plant_period_ns
+        self.period_ns = self._cycle_ns(cycle_us)
         self.sync_cob_id = self._raw(ob.COB_ID_SYNC) & 0x7FF
         self.sync_overflow = self._raw(ob.SYNC_OVERFLOW)
         emcy = self._raw(ob.COB_ID_EMCY)
         self.node.emcy.cob_id = emcy & 0x7FF
         self.emcy_enabled = not emcy & ob.PDO_INVALID
         self.layouts.stale = True
+
+    def _cycle_ns(self, cycle_us: int) -> int:
+        """The SYNC period from 0x1006: the plant's period when 0x1006 is 0 or that period in whole us."""
+        if not cycle_us or abs(cycle_us * 1000 - self.plant_period_ns) < 1000:
+            return self.plant_period_ns
+        return cycle_us * 1000
 
     # --- power-on and NMT ---------------------------------------------------------------------------
     def power_on(self) -> None:
@@ -634,7 +640,7 @@ class Cia402Core:
             if value != self._factory[(index, subindex)]:
                 raise SdoAbortedError(ob.ABORT_INVALID_VALUE)  # the fitted encoder's resolution
         elif index == ob.CYCLE_PERIOD:
-            self.period_ns = value * 1000 if value else self.plant_period_ns
+            self.period_ns = self._cycle_ns(value)
         elif index == ob.COB_ID_SYNC:
             if value & (ob.PDO_NO_RTR | ob.PDO_EXTENDED):  # bit 30: we cannot produce SYNC
                 raise SdoAbortedError(ob.ABORT_INVALID_VALUE)
