@@ -83,6 +83,11 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         )
         p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() and gc.disable() (default: off)")
         p.add_argument(
+            "--progress",
+            action="store_true",
+            help="draw the progress bar even when stderr is not a terminal (default: terminal only)",
+        )
+        p.add_argument(
             "--no-progress",
             action="store_true",
             help="no progress bar (drawn only on a terminal, after 0.5 s)",

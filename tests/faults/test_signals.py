@@ -36,7 +36,7 @@ class Run:
     def __init__(self, args: list[str], log: Path) -> None:
         exe = [str(DOB_HIL)] if DOB_HIL.exists() else [sys.executable, "-m", "dob_hil.cli"]
         self.proc = subprocess.Popen(
-            [*exe, "run", *args, "--log", str(log)],
+            [*exe, "run", *args, "--progress", "--log", str(log)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

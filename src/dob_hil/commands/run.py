@@ -75,7 +75,9 @@ def main(args: argparse.Namespace) -> int:
     config = load_run_config(args)
     check_run_arguments(args, config)
     bar = ProgressBar(
-        f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
+        f"{config.name}{' (no DOB)' if args.no_dob else ''}",
+        not args.no_progress and not args.json,
+        force=args.progress,
     )
     options = RunOptions(
         interface=args.interface,
