@@ -40,7 +40,7 @@ def format_summary(s: dict[str, object]) -> str:
         f"({s['skipped_samples']} of them in sequence gaps), "
         f"{_plural(s['overruns'], 'overrun')}",
         f"  controller step  max {int(s['compute_ns_max']) / 1000:.1f} us "  # type: ignore[call-overload]
-        "(estimate, quantize, predict and two clock reads; the pure step alone: benchmarks/)",
+        "(step, limit, quantise, predict; bench_step.py times the step alone)",
         f"  log              {s['log_path']} (dropped records: {s['log_dropped_records']})",
     ]
     if s["events"]:
