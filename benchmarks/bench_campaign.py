@@ -4,9 +4,10 @@ The paper's 1 s step scenario (3,333 lockstep samples, logged to a scratch MCAP,
 log deleted) with its plant gain and disturbance varied, DOB on and off. Measured in the same
 run: serial cases/min, the pool's cases/min on every CPU and its parallel efficiency (pool rate
 / (workers x serial rate)), a Dask LocalCluster of as many single-threaded worker processes with
-the default batching and with one case per task (the scheduling overhead batching saves), and
-the startup of each (a pool of fresh processes, a LocalCluster). From these, the wall time of a
-100,000-case campaign on N workers, on paper.
+one task per worker and with one case per task (the scheduling overhead batching saves), the
+cost of scheduling one empty task on each (startup excluded), and the startup of each (a pool
+of fresh processes, a LocalCluster). From these, the wall time of a 100,000-case campaign on N
+workers, on paper.
 
     .venv/bin/python benchmarks/bench_campaign.py [--smoke] [--json] [--cases N]
 """
@@ -72,6 +73,33 @@ def _timed(
     }
 
 
+def _noop(x: int) -> int:
+    return x
+
+
+def _per_task_overhead_ms(workers: int, tasks: int) -> dict[str, float]:
+    """Scheduling cost of one task that does nothing, pool against Dask, startup excluded."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from distributed import Client, LocalCluster
+
+    out = {}
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        list(pool.map(_noop, range(workers)))  # started
+        t0 = time.perf_counter()
+        for f in [pool.submit(_noop, i) for i in range(tasks)]:
+            f.result()
+        out["pool"] = (time.perf_counter() - t0) / tasks * 1e3
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None)
+    with cluster, Client(cluster) as client:
+        client.gather(client.map(_noop, range(workers), pure=False))
+        t0 = time.perf_counter()
+        client.gather(client.map(_noop, range(tasks), pure=False))
+        out["dask"] = (time.perf_counter() - t0) / tasks * 1e3
+    return out
+
+
 def _startup_s(kind: str, workers: int) -> float:
     t0 = time.perf_counter()
     if kind == "pool":
@@ -101,10 +129,12 @@ def main() -> int:
         folder = Path(tmp)
         serial = _timed(folder, "serial", Runner("serial", 1), cases, duration_s, 0)
         pool = _timed(folder, "pool", Runner("pool", workers), cases, duration_s, 0)
-        dask = _timed(folder, "dask", Runner("dask", workers), cases, duration_s, 0)
+        per_worker = -(-cases // workers)  # one task per worker
+        dask = _timed(folder, "dask", Runner("dask", workers), cases, duration_s, per_worker)
         dask1 = _timed(folder, "dask1", Runner("dask", workers), cases, duration_s, 1)
         pool_start = _startup_s("pool", workers)
         dask_start = _startup_s("dask", workers)
+        task_ms = _per_task_overhead_ms(workers, 50 if args.smoke else 400)
     same = serial["metrics"] == pool["metrics"] == dask["metrics"] == dask1["metrics"]
     for r in (serial, pool, dask, dask1):
         r.pop("metrics")
@@ -122,6 +152,7 @@ def main() -> int:
             dask["wall_s"] - dask_start - (pool["wall_s"] - pool_start)
         ) / n,
         "unbatched_minus_batched_per_case_s": (dask1["wall_s"] - dask["wall_s"]) / n,
+        "noop_task_overhead_ms": task_ms,
         "identical_metrics": same,
     })  # fmt: skip
     # on paper: 100,000 cases on N dedicated workers at this machine's per-case cost (a worker's

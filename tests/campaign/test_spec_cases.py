@@ -71,3 +71,16 @@ def test_unknown_campaign_key_and_missing_base(tmp_path: Path) -> None:
     path.write_text("[campaign]\nsamples = 2\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"campaign\.base"):
         load_campaign(path)
+
+
+def test_shipped_study_is_the_papers_plant_in_1000_cases() -> None:
+    root = Path(__file__).resolve().parents[2]
+    spec = load_campaign(root / "campaigns" / "paper-robustness.toml")
+    assert spec.n_cases == 1000 and spec.duration_s == 1.0
+    cases = generate_cases(spec)
+    design, truth, _ = case_configs(spec, cases[0])
+    assert truth.plant.B[1][0] == dict(cases[0].params)["plant.B[1]"]
+    assert design.plant.A[1][1] == NOMINAL_A11 and design.plant.B[1][0] == NOMINAL_B1
+    amplitudes = [dict(c.params)["sim.disturbance[0].amplitude_A"] for c in cases]
+    assert 0.0 <= min(amplitudes) < 0.01 and 0.39 < max(amplitudes) <= 0.4
+    assert sum(c.dob_enabled is True for c in cases) == 500

@@ -29,10 +29,10 @@ def default_workers() -> int:
 
 
 def batches(cases: list[Case], workers: int, batch_size: int) -> list[list[Case]]:
-    """``batch_size`` cases per task; 0: about four tasks per worker, at most 50 cases each
+    """``batch_size`` cases per task; 0: about four tasks per worker, at most 20 cases each
     (a task's overhead against its work: BENCHMARKS.md, "Campaigns")."""
     if batch_size <= 0:
-        batch_size = max(1, min(50, -(-len(cases) // (4 * max(1, workers)))))
+        batch_size = max(1, min(20, -(-len(cases) // (4 * max(1, workers)))))
     return [cases[i : i + batch_size] for i in range(0, len(cases), batch_size)]
 
 

@@ -14,7 +14,7 @@
     stable_bound = 10.0        # ... "stable" if it completed and tracking_error_max <= this
     keep_worst = 5             # logs kept for the N worst cases (re-run at the end)
     keep_failures = true       # logs kept for the cases that did not complete
-    batch_size = 0             # cases per task on the pool / Dask (0: automatic)
+    batch_size = 0             # cases per task on the pool / Dask (0: automatic, <= 20)
 
     [[vary]]
     key = "plant.A[1][1]"      # plant.* changes the simulated drive's plant (the truth) only
