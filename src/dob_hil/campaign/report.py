@@ -160,7 +160,9 @@ def write_report(
         plt.close(fig)
     if len(numeric) >= 2 and norm is not None:
         kx, ky = numeric[-2], numeric[-1]  # the last two: the disturbance in the shipped study
-        fig, axes = plt.subplots(1, len(groups), figsize=(5.2 * len(groups), 4.2), squeeze=False)
+        fig, axes = plt.subplots(
+            1, len(groups), figsize=(5.2 * len(groups), 4.2), squeeze=False, layout="constrained"
+        )
         sc = None
         for gi, (label, rs) in enumerate(groups):
             ax = axes[0][gi]
@@ -171,7 +173,8 @@ def write_report(
             sc = ax.scatter(x, y, c=c, s=14, cmap="viridis", norm=norm)
             ax.set_title(label)
             ax.set_xlabel(kx)
-            ax.set_ylabel(ky)
+            if gi == 0:
+                ax.set_ylabel(ky)
         if sc is not None:
             fig.colorbar(sc, ax=axes[0].tolist(), label=m)
         pngs.append(out / "map-2d.png")
