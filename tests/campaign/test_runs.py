@@ -165,3 +165,14 @@ def test_cli_bad_input_is_one_line(
     path = tiny_writer(tmp_path)
     assert cli_main(["campaign", str(path), "--rerun", "c999999", "--out", str(tmp_path / "o")]) == 2
     assert "no case 'c999999'" in capsys.readouterr().err
+
+
+def test_dask_existing_scheduler_by_address(
+    tiny_writer: Callable[[Path], Path], serial_rows: tuple[Path, list[dict[str, Any]]], tmp_path: Path
+) -> None:
+    """``--scheduler ADDRESS``: the campaign connects to a cluster it did not start."""
+    distributed = pytest.importorskip("distributed")
+    spec = load_campaign(tiny_writer(tmp_path))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
+        result = run_campaign(spec, tmp_path / "out", Runner("dask", 2, cluster.scheduler_address))
+    _assert_same(read_table(result.table_path), serial_rows[1])
