@@ -143,6 +143,7 @@ def test_rerun_is_bit_exact(tiny_writer: Callable[[Path], Path], tmp_path: Path)
         if name == "compute_ns":
             continue  # host clock readings, not results
         assert np.array_equal(la.data.samples[name], lb.data.samples[name]), name
+    assert len(la.data.truth) > 0 and la.data.truth.tobytes() == lb.data.truth.tobytes()  # the plant's truth
 
 
 def test_cli_rerun_matches_the_table(
