@@ -31,7 +31,7 @@ def _params() -> list[object]:
 def test_every_benchmark_is_found() -> None:
     names = {s.name for s in SCRIPTS}
     expected = {"bench_step.py", "bench_lockstep.py", "bench_realtime.py", "bench_logging.py",
-                "bench_analysis.py", "bench_cli.py", "bench_soak.py"}  # fmt: skip
+                "bench_analysis.py", "bench_cli.py", "bench_soak.py", "bench_campaign.py"}  # fmt: skip
     assert expected <= names, sorted(expected - names)
 
 

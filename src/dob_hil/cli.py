@@ -25,6 +25,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("dob_hil.commands.replay", "re-run, re-design or re-send a logged run"),
     "export": ("dob_hil.commands.export", "write a log's frames as BLF/ASC/CSV"),
     "doctor": ("dob_hil.commands.doctor", "check the CAN interface and the host before a real-time run"),
+    "campaign": ("dob_hil.commands.campaign", "robustness campaign: many lockstep runs, a table, a report"),
     "config": ("dob_hil.commands.config", "the config reference (--doc) or a commented starter (--template)"),
     "init": ("dob_hil.commands.config", "write a commented starter config to a new file"),
 }
@@ -167,6 +168,8 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--format", required=True, choices=("blf", "asc", "csv"))
         p.add_argument("--out", help="output path (default: beside the log)")
         p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
+    elif name == "campaign":
+        _add_campaign_arguments(p)
     elif name == "config":
         g = p.add_mutually_exclusive_group(required=True)
         g.add_argument("--doc", action="store_true", help="the reference of every key (Markdown)")
@@ -174,6 +177,19 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--out", help="write to this new file instead of stdout")
     elif name == "init":
         p.add_argument("path", help="the config file to create (refused if it exists)")
+
+
+def _add_campaign_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="campaign TOML (campaigns/paper-robustness.toml)")
+    p.add_argument("--workers", type=int, help="processes (default: the CPUs available; 1: serial)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--scheduler", help="run on this Dask scheduler (tcp://host:8786)")
+    g.add_argument("--local-cluster", action="store_true", help="run on a Dask LocalCluster of --workers")
+    p.add_argument("--rerun", metavar="CASE_ID", help="re-run one case with its log, compare with the table")
+    p.add_argument("--out", help="output folder (default: logs/campaign-<name>)")
+    p.add_argument("--no-report", action="store_true", help="skip report.md and the plots")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
 
 
 def _add_doctor_arguments(p: argparse.ArgumentParser) -> None:

@@ -64,6 +64,8 @@ class RunOptions:
     bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None
     # the embedded lockstep bus: "inprocess" (no copies) or python-can's "virtual"
     bus_impl: str = "inprocess"
+    # the simulated drive's plant ("truth"), when it differs from the design's (campaigns)
+    sim_config: Config | None = None
 
 
 @dataclass
@@ -301,7 +303,8 @@ def _run_with_log(
         # lockstep: one thread, a bus without copies; the embedded real-time drive has threads
         host_bus, drive_bus = bus_pair(channel, options.bus_impl if mode == "lockstep" else "virtual")
         sink = _truth_sink(log) if mode == "lockstep" else loop_log.queue_truth
-        drive = profile.make_sim(drive_bus, config, "realtime" if options.realtime else "lockstep", sink)
+        sim_config = options.sim_config or config
+        drive = profile.make_sim(drive_bus, sim_config, "realtime" if options.realtime else "lockstep", sink)
         if mode == "lockstep":
             sim = drive
 
