@@ -24,6 +24,7 @@ from dob_hil.config import load_config
 from dob_hil.errors import DobHilError
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.drive import SimulatedDrive
+from firmware_sim.odrive import SimulatedOdrive
 from firmware_sim.plant import check_single_axis
 from firmware_sim.process import READY_TEXT
 from firmware_sim.truth import UdpTruthSender
@@ -98,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sink = UdpTruthSender(args.truth_port) if args.truth_port is not None else None
     status = 0
     try:
-        drive = SimulatedDrive(
+        drive = (SimulatedOdrive if config.drive.profile == "odrive" else SimulatedDrive)(
             bus, config, clock="realtime", truth_sink=sink, spin_ns=round(args.spin_us * 1000)
         )
         gc.freeze()  # long-lived objects out of the collector's way (gen-2 pauses of several ms)

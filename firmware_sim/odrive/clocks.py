@@ -1,9 +1,10 @@
 """The simulated ODrive's two clocks: lockstep (driven by the host's torque inputs) and real time.
 
 Lockstep: :meth:`OdriveLockstep.service` drains the frames pending on the drive's bus end and
-acts on each at the current simulated instant. Entering closed loop sends a heartbeat and the
-estimates of the current instant at once (the drive's clock stands still until the host answers,
-so the heartbeat a real drive sends within ``heartbeat_msg_rate_ms`` comes now). A
+acts on each at the current simulated instant. Set_Axis_State is answered by a heartbeat at once
+(the drive's clock stands still until the host answers, so the heartbeat a real drive sends
+within ``heartbeat_msg_rate_ms`` comes now), and entering closed loop also sends the estimates of
+the current instant. A
 Set_Input_Torque answering the last estimates integrates one period (the torque acting from the
 sample instant), closes it (watchdog, heartbeat) and sends the next estimates; torque inputs
 before any estimates (the enable sequence) only set the input. An RTR is answered with the
@@ -62,10 +63,11 @@ class OdriveLockstep:
             if cmd is CmdId.GET_ENCODER_ESTIMATES:
                 self.core.stats.rtr_answered += 1
                 self._send_estimates()
-            elif core.closed_loop and not was_closed:
+            elif cmd is CmdId.SET_AXIS_STATE:
                 core.heartbeat_now()
                 self._send_outgoing()
-                self._send_estimates()
+                if core.closed_loop and not was_closed:
+                    self._send_estimates()
             else:
                 self._send_outgoing()
 
@@ -84,9 +86,9 @@ class OdriveLockstep:
         self._send_outgoing()  # an error the sample raised goes out first
         self._awaiting = True
         if self.impairment.lost():
-            self.core.stats.estimates_lost += 1
+            self.core.stats.feedback_lost += 1
         elif self._send(self.core.estimates_id, payload):
-            self.core.stats.estimates_sent += 1
+            self.core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)
 
@@ -186,7 +188,7 @@ class OdriveRealtime:
                 frames = core.take_outgoing()
                 lost = self.impairment.lost()
                 if lost:
-                    core.stats.estimates_lost += 1
+                    core.stats.feedback_lost += 1
             for aid, data in frames:
                 self._send(aid, data)
             if not lost:
@@ -241,4 +243,4 @@ class OdriveRealtime:
                 return
         if arbitration_id == self.core.estimates_id:
             with self._lock:
-                self.core.stats.estimates_sent += 1
+                self.core.stats.feedback_sent += 1

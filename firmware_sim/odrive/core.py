@@ -59,11 +59,11 @@ TruthSink = Callable[[GroundTruth], None]
 @dataclass
 class OdriveStats:
     samples: int = 0  # encoder estimates taken
-    estimates_sent: int = 0
-    estimates_lost: int = 0
+    feedback_sent: int = 0
+    feedback_lost: int = 0
     rtr_answered: int = 0
     heartbeats_sent: int = 0
-    torque_inputs: int = 0
+    commands_accepted: int = 0
     bad_frames: int = 0
     frames_ignored: int = 0
     saturations: int = 0
@@ -179,7 +179,7 @@ class OdriveCore:
         if not math.isfinite(torque):
             raise ProtocolError("Set_Input_Torque: not finite")
         self.input_torque_Nm = torque
-        self.stats.torque_inputs += 1
+        self.stats.commands_accepted += 1
         if self.closed_loop:
             self._missed = 0
             self._apply(t_ns)

@@ -6,18 +6,21 @@ Clock and sequence numbers. The drive sends Get_Encoder_Estimates every ``encode
 (= the control period), so the drive is the clock, as with the native profile. CANSimple frames
 carry no sequence number; the link derives one from arrival times: the first estimate gets 0
 and each later one ``previous + max(1, round(gap / period))`` (mod 256), where ``gap`` is the
-time between the two frames' bus timestamps (the host's receive times where the interface gives
+time between the two frames' bus timestamps (``time.time()`` at receipt where the interface gives
 none). A frame lost on the bus shows as a gap of two periods, so the real-time runner fills it
 like a lost native feedback; frames read together after a stall of this process keep their bus
-timestamps and are spaced correctly. In lockstep (no wall clock), every estimate is one more.
+timestamps and are spaced correctly. In lockstep (no wall clock, after :meth:`enable_lockstep`)
+every estimate is one more. An estimate stamped before the last one (reordered) or a repeat of
+the last one (same stamp and payload) is STALE_FEEDBACK and discarded.
 :meth:`send_sync` sends the RTR Get_Encoder_Estimates that a host-clocked loop would use as the
 cycle's trigger (the drive answers with the estimates sampled when it arrives).
 
-Receiving. Estimates are checked (DLC 8, both floats finite: NaN/inf are MALFORMED_FRAME events
-and never reach the controller), quantized to the encoder (``counts = round(pos_turns *
-encoder_cpr)``, ``position = counts / encoder_counts_per_unit``; the float as sent stays in the
-frame log). Heartbeats give DRIVE_STATE events; after enabling, a heartbeat with axis errors or
-out of CLOSED_LOOP_CONTROL ends the run: :meth:`receive_feedback` raises
+Receiving. Estimates are checked (DLC 8, both floats finite, the position within an int32
+count: anything else is a MALFORMED_FRAME event and never reaches the controller) and quantized
+to the encoder (``counts = round(pos_turns * encoder_cpr)``, ``position = counts /
+encoder_counts_per_unit``; the float as sent stays in the frame log). Heartbeats give
+DRIVE_STATE events; after enabling, a heartbeat with axis errors or out of CLOSED_LOOP_CONTROL
+ends the run: :meth:`receive_feedback` raises
 :class:`~dob_hil.errors.DriveFault` naming the state and the error bits. Other nodes' frames,
 unknown commands, 29-bit ids and error frames are events and skipped; our own command frames and
 RTR echoed back (udp_multicast) are counted and skipped.
@@ -55,6 +58,7 @@ _log = logging.getLogger(__name__)
 N_AXES: Final = 1
 SEQ_MODULO: Final = 256
 MAX_READS_AFTER_DEADLINE: Final = 1024
+MAX_COUNTS: Final = 2**31 - 1  # estimates beyond an int32 count are implausible (malformed)
 _ESTIMATES: Final = struct.Struct("<ff")
 _HEARTBEAT: Final = struct.Struct("<IBBBx")
 _TORQUE: Final = struct.Struct("<f4x")
@@ -68,6 +72,7 @@ class OdriveLinkStats:
     rx_frames: int = 0
     feedback: int = 0
     missed_feedback: int = 0  # sequence numbers skipped (gaps in arrival times)
+    stale_feedback: int = 0  # duplicates and estimates stamped before the last ones
     malformed_frames: int = 0
     nonfinite_estimates: int = 0
     foreign_frames: int = 0
@@ -198,6 +203,8 @@ class OdriveDriveLink:
         self.stats = OdriveLinkStats()
         self._seq: int | None = None
         self._last_stamp_ns = 0
+        self._last_data = b""
+        self._lockstep = False  # set by enable_lockstep: one estimate per sample, no wall clock
         self._heartbeat: codec.Heartbeat | None = None
         self._armed = False  # enabled: a heartbeat with errors or out of closed loop ends the run
         self._enable_attempt = False
@@ -328,6 +335,8 @@ class OdriveDriveLink:
                 raise self._not_enabled(f"within {timeout_ns / 1e6:g} ms")
 
     def enable_lockstep(self, service: Callable[[], int], max_rounds: int = 3) -> None:
+        """Enable against the embedded lockstep drive; from now on each estimate is one sample."""
+        self._lockstep = True
         self.request_enable()
         for _ in range(max_rounds):
             service()
@@ -432,19 +441,33 @@ class OdriveDriveLink:
             )
             return
         counts = round(pos_turns * self._cpr)
-        stamp_ns = round(msg.timestamp * 1e9) if msg.timestamp else now_ns
+        if not -MAX_COUNTS <= counts <= MAX_COUNTS:
+            self._malformed(
+                now_ns, msg, f"encoder estimate {pos_turns!r} turns is beyond the int32 count range"
+            )
+            return
+        stamp_ns = round((msg.timestamp or time.time()) * 1e9)
         seq = self._seq
         if seq is None:
             seq = 0
         else:
-            step = 1
-            if self._period_ns > 0:
-                step = max(1, round((stamp_ns - self._last_stamp_ns) / self._period_ns))
+            gap_ns = stamp_ns - self._last_stamp_ns
+            if gap_ns < 0 or (gap_ns == 0 and bytes(data) == self._last_data):
+                self.stats.stale_feedback += 1
+                what = "a duplicate" if gap_ns == 0 else f"{-gap_ns / 1e6:.3f} ms older than the last"
+                self._event(
+                    now_ns,
+                    LinkEventKind.STALE_FEEDBACK,
+                    f"node {self._node}: encoder estimates stamped {what}; discarded",
+                )
+                return
+            step = 1 if self._lockstep else max(1, round(gap_ns / self._period_ns))
             if step > 1:
                 self.stats.missed_feedback += step - 1
             seq = (seq + step) % SEQ_MODULO
         self._seq = seq
         self._last_stamp_ns = stamp_ns
+        self._last_data = bytes(data)
         hb = self._heartbeat
         enabled = hb is not None and hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0
         fault = hb is not None and hb.axis_error != 0
