@@ -108,8 +108,9 @@ class OdriveCore:
         self.input_mode = InputMode.INACTIVE
         self.input_torque_Nm = 0.0
         self.time_ns = 0
-        self._missed = 0  # watchdog: periods in closed loop without a torque input
-        self._next_heartbeat_ns = 0
+        self._missed = 0  # watchdog: periods in a row in closed loop without a torque input
+        self._fed = False  # a torque input arrived in the current period
+        self._next_heartbeat_ns = self.heartbeat_ns
         self._out: list[Outgoing] = []
         self.faults = DriveFaults.from_config(config)
         self.silent = False
@@ -162,7 +163,7 @@ class OdriveCore:
         if requested is AxisState.CLOSED_LOOP_CONTROL:
             if not self.axis_error and not self.closed_loop:
                 self.axis_state = AxisState.CLOSED_LOOP_CONTROL
-                self._missed = 0
+                self._missed, self._fed = 0, False
                 self._apply(t_ns)
                 if self.faults is not None:
                     self.faults.on_enabled(self.period_index)
@@ -181,7 +182,7 @@ class OdriveCore:
         self.input_torque_Nm = torque
         self.stats.commands_accepted += 1
         if self.closed_loop:
-            self._missed = 0
+            self._fed = True
             self._apply(t_ns)
 
     def _on_clear_errors(self, data: bytes, t_ns: int) -> None:
@@ -234,7 +235,8 @@ class OdriveCore:
             self.faults.on_period(cast(Any, self), self.period_index)
             self.silent = self.faults.silent
         if self.closed_loop:
-            self._missed += 1
+            self._missed = 0 if self._fed else self._missed + 1
+            self._fed = False
             if self._missed >= self.watchdog_periods:
                 self.set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, self.time_ns)
         self.heartbeat_if_due()

@@ -93,3 +93,15 @@ def make_rig(config: Config) -> Rig:
                            event_hook=events.append)  # fmt: skip
     drive = SimulatedOdrive(drive_bus, config)
     return Rig(config, link, drive, host_bus, drive_bus, spy, events)
+
+
+def tracking_rms(data: Any, from_s: float = 0.1) -> float:
+    """RMS of reference minus the simulated drive's *true* position, over samples after ``from_s``."""
+    import numpy as np
+
+    s, t = data.samples, data.truth
+    by_period = {int(p): i for i, p in enumerate(t["period_index"])}
+    idx = np.array([by_period[int(k)] for k in s["seq"]])
+    window = s["time_ns"] >= from_s * 1e9
+    err = s["x_ref"][window, 0] - t["state"][idx[window], 0]
+    return float(np.sqrt(np.mean(err**2)))
