@@ -23,7 +23,8 @@ An ODrive axis as its CANSimple users see it (firmware 0.6.x frames, :mod:`dob_h
   to IDLE), ``silent_at_s`` silences the transmitter, ``encoder_jump_at_s`` offsets the position
   by ``encoder_jump_counts`` encoder counts. A non-finite plant position sets MISSING_ESTIMATE.
 
-The physics (plant, disturbances, current path) is firmware_sim's. ``plant.input_delay_samples``
+The physics (plant, disturbances, current path) is firmware_sim's; the disturbances start when
+the axis first enters closed loop (:class:`StartAtEnable`). ``plant.input_delay_samples``
 is the design's model of the delay and is not added here: the torque acts when it arrives.
 """
 
@@ -36,6 +37,7 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from dob_hil.config import Config
 from dob_hil.errors import ProtocolError
@@ -95,8 +97,8 @@ class OdriveCore:
         self.cpr = options.encoder_cpr
         self.heartbeat_ns = options.heartbeat_msg_rate_ms * 1_000_000
         self.watchdog_periods = drive.watchdog_periods
-        self.disturbance = Disturbance(sim.disturbances, plant.period_s / sim.substeps)
-        self.plant = PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
+        self.disturbance = StartAtEnable(Disturbance(sim.disturbances, plant.period_s / sim.substeps))
+        self.plant = PlantModel(plant, sim.substeps, cast(Disturbance, self.disturbance), sim.initial_state)
         self._vel_row = [float(v) for v in (np.asarray(plant.C) @ np.asarray(plant.A))[0]]
         self._noise_std_counts = sim.noise_counts_std
         self._rng = np.random.default_rng([sim.seed, 0x0D])
@@ -165,6 +167,7 @@ class OdriveCore:
                 self.axis_state = AxisState.CLOSED_LOOP_CONTROL
                 self._missed, self._fed = 0, False
                 self._apply(t_ns)
+                self.disturbance.start(t_ns)
                 if self.faults is not None:
                     self.faults.on_enabled(self.period_index)
         elif requested is AxisState.IDLE:
@@ -274,6 +277,36 @@ class OdriveCore:
             t // self.period_ns, t, x, self.disturbance.value_A(t * 1e-9), self.path.held_A, self.drive_state
         )
         return payload, truth
+
+
+class StartAtEnable:
+    """firmware_sim's :class:`Disturbance`, with its time origin at the first closed-loop entry.
+
+    A standalone drive runs from its process start; the configured disturbances (``start_s``
+    relative to the run) begin when the host first enables the axis, as with the native drive's
+    injected faults. Until then the plant is undisturbed. Duck-types ``Disturbance`` for
+    :class:`~firmware_sim.plant.PlantModel` (which reads ``is_zero`` on every step).
+    """
+
+    def __init__(self, inner: Disturbance) -> None:
+        self.inner = inner
+        self.origin_s: float | None = None
+        self.is_zero = True
+
+    def start(self, t_ns: int) -> None:
+        if self.origin_s is None:
+            self.origin_s = t_ns * 1e-9
+            self.is_zero = self.inner.is_zero
+
+    def value_A(self, t_s: float) -> float:
+        if self.origin_s is None or t_s < self.origin_s:
+            return 0.0
+        return self.inner.value_A(t_s - self.origin_s)
+
+    def values_A(self, t_s: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        if self.origin_s is None:
+            return np.zeros_like(t_s)
+        return np.where(t_s >= self.origin_s, self.inner.values_A(t_s - self.origin_s), 0.0)
 
 
 def _clip_f32(v: float) -> float:
