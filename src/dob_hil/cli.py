@@ -22,6 +22,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "analyze": ("dob_hil.commands.analyze", "metrics and plots from MCAP logs"),
     "replay": ("dob_hil.commands.replay", "re-run, re-design or re-send a logged run"),
     "export": ("dob_hil.commands.export", "write a log's frames as BLF/ASC/CSV"),
+    "profiles": ("dob_hil.commands.profiles", "the drive profiles and the bus load each gives for a config"),
 }
 
 
@@ -106,6 +107,10 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--format", required=True, choices=("blf", "asc", "csv"))
         p.add_argument("--out", help="output path (default: beside the log)")
         p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
+    elif name == "profiles":
+        p.add_argument("config", nargs="?", help="TOML config or scenario: bus load of each profile for it")
+        p.add_argument("--json", action="store_true", help="print the catalogue as JSON")
+        p.add_argument("--markdown", action="store_true", help="print the README's catalogue table")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
