@@ -42,6 +42,8 @@ def test_dob_halves_the_tracking_error(tmp_path: Path) -> None:
         last_two = [(int(r["arbitration_id"]) & 0x1F, bytes(r["data"])) for r in tx[-2:]]
         assert last_two == [(CmdId.SET_INPUT_TORQUE, bytes(8)), (CmdId.SET_AXIS_STATE, bytes([1]) + bytes(7))]
     assert rms[True] <= 0.5 * rms[False], rms
+    # the log replays bit for bit through the profile's own quantizer (float32 torque codes)
+    assert dob_hil_main(["replay", str(tmp_path / "dob-True.mcap"), "--verify"]) == 0
 
 
 def test_cli_runs_the_shipped_scenario(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from dob_hil.link.odrive.options import parse_options
-from dob_hil.profiles.base import Clocking, DriveProfile, SimulatedCounterpart, TruthSink
+from dob_hil.errors import ConfigError
+from dob_hil.link.odrive.options import OdriveOptions, parse_options
+from dob_hil.profiles.base import Clocking, DriveProfile, QuantizeFn, SimulatedCounterpart, TruthSink
 
 if TYPE_CHECKING:
     import can
 
-    from dob_hil.config import Config
+    from dob_hil.config import Config, DriveConfig
     from dob_hil.link.base import DriveLink, EventHook, FrameHook
     from dob_hil.link.busload import BusLoad
 
@@ -44,6 +45,14 @@ def _make_sim(
 
     return SimulatedOdrive(bus, config, clock="realtime" if clock == "realtime" else "lockstep",
                            truth_sink=truth_sink)  # fmt: skip
+
+
+def _make_quantizer(drive: DriveConfig) -> QuantizeFn:
+    from dob_hil.link.odrive.link import TorqueQuantizer
+
+    if not isinstance(drive.options, OdriveOptions):
+        raise ConfigError("drive.odrive", "missing (the ODrive profile needs this table)")
+    return TorqueQuantizer(drive.current_limit_A, drive.options.torque_constant_Nm_per_A).quantize
 
 
 def _bus_load(config: Config) -> BusLoad:
@@ -74,6 +83,7 @@ PROFILE = DriveProfile(
     make_sim=_make_sim,
     bus_load=_bus_load,
     parse_options=parse_options,
+    make_quantizer=_make_quantizer,
     tested="byte-exact codec, cantools DBC, watchdog, axis errors, NaN/inf, lockstep and udp_multicast "
     "real time, fault matrix",
 )

@@ -284,7 +284,8 @@ class OdriveDriveLink:
         self._armed = False
         self._enable_attempt = True
         self._enable_seen = False
-        if self._options.clear_fault:
+        # [drive.odrive] clear_fault, or the common [drive] clear_fault / --clear-fault where present
+        if self._options.clear_fault or getattr(self._drive, "clear_fault", False):
             self._send(self._ids[CmdId.CLEAR_ERRORS], codec.encode_clear_errors(0), "Clear_Errors")
         self._send(
             self._ids[CmdId.SET_CONTROLLER_MODE],
