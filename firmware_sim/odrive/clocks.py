@@ -1,20 +1,23 @@
-"""The simulated ODrive's two clocks: lockstep (driven by the host's torque inputs) and real time.
+"""The simulated ODrive's two clocks: lockstep (driven by the host's frames) and real time.
 
 Lockstep: :meth:`OdriveLockstep.service` drains the frames pending on the drive's bus end and
 acts on each at the current simulated instant. Set_Axis_State is answered by a heartbeat at once
 (the drive's clock stands still until the host answers, so the heartbeat a real drive sends
-within ``heartbeat_msg_rate_ms`` comes now), and entering closed loop also sends the estimates of
-the current instant. A
+within ``heartbeat_msg_rate_ms`` comes now). With cyclic estimates (``encoder_msg_rate_ms`` =
+Ts, drive-clocked) entering closed loop sends the estimates of the current instant, and a
 Set_Input_Torque answering the last estimates integrates one period (the torque acting from the
 sample instant), closes it (watchdog, heartbeat) and sends the next estimates; torque inputs
-before any estimates (the enable sequence) only set the input. An RTR is answered with the
-estimates of the current instant. :meth:`OdriveLockstep.advance_period` runs a period without a
-torque input. ``sim.loss_probability`` drops estimates (seeded).
+before any estimates (the enable sequence) only set the input, and an RTR is answered with the
+estimates of the current instant. Without them (``encoder_msg_rate_ms = 0``, host-clocked) the
+RTR is the clock: the first is answered with the estimates of the current instant, each later
+one integrates a period first (torque inputs in between act from the sample instant).
+:meth:`OdriveLockstep.advance_period` runs a period without a torque input (estimates only if
+cyclic). ``sim.loss_probability`` drops estimates (seeded).
 
 Real time: a timer thread wakes on absolute deadlines ``t0 + k Ts``, integrates to ``k Ts``,
-closes the period and sends the estimates every ``encoder_msg_rate_ms`` (= Ts); a receive thread
-acts on each frame at its arrival (a torque acts from its arrival, an RTR is answered with the
-estimates sampled at its arrival). Exceptions in either thread stop both and are re-raised by
+closes the period and sends the cyclic estimates (if configured); a receive thread acts on each
+frame at its arrival (a torque acts from its arrival, an RTR is answered with the estimates
+sampled at its arrival). Exceptions in either thread stop both and are re-raised by
 :meth:`OdriveRealtime.check` / :meth:`OdriveRealtime.stop`.
 """
 
@@ -43,6 +46,7 @@ class OdriveLockstep:
         sim = config.sim
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
         self._awaiting = False  # estimates went out; the next torque input closes the period
+        self._sampled_at = -1  # the instant the last estimates were taken at
 
     def service(self) -> int:
         recv, core = self.bus.recv, self.core
@@ -57,32 +61,39 @@ class OdriveLockstep:
                 continue
             was_closed = core.closed_loop
             cmd = core.on_frame(msg.arbitration_id, msg.data, msg.is_remote_frame, core.time_ns)
-            if cmd is CmdId.SET_INPUT_TORQUE and self._awaiting:
+            if cmd is CmdId.SET_INPUT_TORQUE and self._awaiting and core.cyclic:
                 self._run_period()
                 return n
             if cmd is CmdId.GET_ENCODER_ESTIMATES:
-                self.core.stats.rtr_answered += 1
-                self._send_estimates()
+                core.stats.rtr_answered += 1
+                if core.cyclic or self._sampled_at != core.time_ns:
+                    self._send_estimates()  # the estimates of this instant
+                    continue
+                self._run_period()  # host-clocked: each RTR after the first is the next instant
+                return n
             elif cmd is CmdId.SET_AXIS_STATE:
                 core.heartbeat_now()
                 self._send_outgoing()
-                if core.closed_loop and not was_closed:
+                if core.closed_loop and not was_closed and core.cyclic:
                     self._send_estimates()
             else:
                 self._send_outgoing()
 
-    def advance_period(self) -> None:
-        self._run_period()
-
-    def _run_period(self) -> None:
+    def _run_period(self, *, sample: bool = True) -> None:
         core = self.core
         core.integrate_to(core.time_ns + core.period_ns)
         core.period_boundary()
         self._send_outgoing()
-        self._send_estimates()
+        if sample:
+            self._send_estimates()
+
+    def advance_period(self) -> None:
+        """One period without a torque input; the estimates follow if they are cyclic."""
+        self._run_period(sample=self.core.cyclic)
 
     def _send_estimates(self) -> None:
         payload, truth = self.core.estimates()
+        self._sampled_at = self.core.time_ns
         self._send_outgoing()  # an error the sample raised goes out first
         self._awaiting = True
         if self.impairment.lost():
@@ -191,7 +202,7 @@ class OdriveRealtime:
                     core.stats.feedback_lost += 1
             for aid, data in frames:
                 self._send(aid, data)
-            if not lost:
+            if not lost and core.cyclic:
                 self._send(core.estimates_id, payload)
             if truth is not None and self.truth_sink is not None:
                 self.truth_sink(truth)

@@ -16,7 +16,7 @@ An ODrive axis as its CANSimple users see it (firmware 0.6.x frames, :mod:`dob_h
   and drop the axis to IDLE (zero current).
 * Clear_Errors clears the axis errors (the axis stays IDLE; the host requests closed loop again).
 * Heartbeat every ``heartbeat_msg_rate_ms``; Get_Encoder_Estimates every ``encoder_msg_rate_ms``
-  and on RTR, in every state: position in turns (``encoder_counts_per_unit / encoder_cpr``
+  (0: never) and on RTR, in every state: position in turns (``encoder_counts_per_unit / encoder_cpr``
   turns per plant unit) and velocity in turns/s (``C A x``, exact for a position output with
   ``C B = 0``), both float32, the position with the encoder's noise if configured.
 * Injected faults (``[sim.faults]``) as in the native drive: ``fault_at_s`` sets DRV_FAULT (axis
@@ -78,7 +78,8 @@ class OdriveCore:
     def __init__(self, config: Config, *, want_truth: bool) -> None:
         check_single_axis(config.plant)
         drive, sim, plant = config.drive, config.sim, config.plant
-        options = odrive_options(config)
+        options = odrive_options(config, host_clocked=None)  # the simulated ODrive serves both clockings
+        self.cyclic = options.encoder_msg_rate_ms > 0  # estimates every period; else only on RTR
         self.node_id = drive.node_id
         self.ids = {cmd: codec.arbitration_id(drive.node_id, cmd) for cmd in CmdId}
         self.estimates_id = self.ids[CmdId.GET_ENCODER_ESTIMATES]

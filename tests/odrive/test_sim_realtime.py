@@ -49,13 +49,10 @@ def test_enable_estimates_rtr_and_watchdog_in_real_time(
     link, drive, spy = pair
     link.enable(10_000_000_000)
     assert drive.enabled
-    seqs = []
     for _ in range(5):
         fb = link.receive_feedback(5_000_000_000)
         assert fb is not None and fb.enabled
-        seqs.append(fb.seq)
         link.send_command(link.quantize((0.0,))[0], fb.seq)
-    assert all(0 < (b - a) % 256 < 128 for a, b in itertools.pairwise(seqs))  # each one newer
     while spy.recv(0.0) is not None:
         pass
     link.send_sync()

@@ -34,7 +34,8 @@ def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hoo
     from dob_hil.link.odrive.link import OdriveDriveLink
     from dob_hil.link.odrive.options import odrive_options
 
-    return OdriveDriveLink(bus, config.drive, odrive_options(config), config.plant.period_ns,
+    options = odrive_options(config, host_clocked=PROFILE.clocking is Clocking.HOST)
+    return OdriveDriveLink(bus, config.drive, options, config.plant.period_ns,
                            frame_hook=frame_hook, event_hook=event_hook, owns_bus=True)  # fmt: skip
 
 
@@ -60,10 +61,11 @@ def _bus_load(config: Config) -> BusLoad:
     from dob_hil.link.odrive.codec import DLC
     from dob_hil.link.odrive.options import odrive_options
 
-    options = odrive_options(config)
+    options = odrive_options(config, host_clocked=PROFILE.clocking is Clocking.HOST)
     period_ns = config.plant.period_ns
     heartbeat_hz = 1000.0 / options.heartbeat_msg_rate_ms
     frames = {
+        **({"Get_Encoder_Estimates RTR": (RTR_BYTES, 1.0)} if options.encoder_msg_rate_ms == 0 else {}),
         "Get_Encoder_Estimates": (DLC, 1.0),
         "Set_Input_Torque": (DLC, 1.0),
         "Heartbeat": (DLC, heartbeat_hz * period_ns * 1e-9),

@@ -205,6 +205,10 @@ class OdriveDriveLink:
         self._last_stamp_ns = 0
         self._last_data = b""
         self._lockstep = False  # set by enable_lockstep: one estimate per sample, no wall clock
+        self._rtr_mode = options.encoder_msg_rate_ms == 0  # host-clocked: estimates only on RTR
+        self._auto_trigger = False  # lockstep + RTR mode: send_command sends the next trigger
+        self._triggers = 0  # RTR triggers sent
+        self._answered = True  # the last trigger was answered (a second answer is stale)
         self._heartbeat: codec.Heartbeat | None = None
         self._armed = False  # enabled: a heartbeat with errors or out of closed loop ends the run
         self._enable_attempt = False
@@ -271,11 +275,17 @@ class OdriveDriveLink:
         if clamped:
             self.stats.clamped_commands += 1
         self._send(self._torque_id, _TORQUE.pack(torque), "Set_Input_Torque")
-        return self._clock_ns()
+        tx_ns = self._clock_ns()
+        if self._auto_trigger:  # lockstep, host-clocked: the next sample's trigger follows at once
+            self.send_sync()
+        return tx_ns
 
     def send_sync(self) -> int:
-        """RTR Get_Encoder_Estimates: the drive answers with the estimates sampled on arrival."""
+        """RTR Get_Encoder_Estimates, the trigger of the next sample: the drive answers with the
+        estimates sampled on its arrival, which get the trigger's index as sequence number."""
         self._send(self._estimates_id, b"", "Get_Encoder_Estimates (RTR)", remote=True)
+        self._triggers += 1
+        self._answered = False
         return self._clock_ns()
 
     # --- enable / stop ---------------------------------------------------------------------------
@@ -342,6 +352,10 @@ class OdriveDriveLink:
         for _ in range(max_rounds):
             service()
             if self.poll_enabled():
+                if self._rtr_mode:  # host-clocked: the host triggers every sample, the first now
+                    self._auto_trigger = True
+                    self._pending = None
+                    self.send_sync()
                 return
         raise self._not_enabled(f"after {max_rounds} rounds of the simulated drive")
 
@@ -447,34 +461,46 @@ class OdriveDriveLink:
                 now_ns, msg, f"encoder estimate {pos_turns!r} turns is beyond the int32 count range"
             )
             return
-        stamp_ns = round((msg.timestamp or time.time()) * 1e9)
-        seq = self._seq
-        if seq is None:
-            seq = 0
-        else:
-            gap_ns = stamp_ns - self._last_stamp_ns
-            if gap_ns < 0 or (gap_ns == 0 and bytes(data) == self._last_data):
-                self.stats.stale_feedback += 1
-                what = "a duplicate" if gap_ns == 0 else f"{-gap_ns / 1e6:.3f} ms older than the last"
-                self._event(
-                    now_ns,
-                    LinkEventKind.STALE_FEEDBACK,
-                    f"node {self._node}: encoder estimates stamped {what}; discarded",
-                )
+        if self._rtr_mode:
+            if self._answered or self._triggers == 0:
+                self._stale(now_ns, "not asked for (no RTR outstanding)")
                 return
-            step = 1 if self._lockstep else max(1, round(gap_ns / self._period_ns))
-            if step > 1:
-                self.stats.missed_feedback += step - 1
-            seq = (seq + step) % SEQ_MODULO
+            self._answered = True
+            seq = (self._triggers - 1) % SEQ_MODULO
+            if self._seq is not None and (seq - self._seq) % SEQ_MODULO > 1:
+                self.stats.missed_feedback += (seq - self._seq) % SEQ_MODULO - 1
+        else:
+            stamp_ns = round((msg.timestamp or time.time()) * 1e9)
+            last_seq = self._seq
+            if last_seq is None:
+                seq = 0
+            else:
+                gap_ns = stamp_ns - self._last_stamp_ns
+                if gap_ns < 0 or (gap_ns == 0 and bytes(data) == self._last_data):
+                    self._stale(
+                        now_ns,
+                        "a duplicate" if gap_ns == 0 else f"{-gap_ns / 1e6:.3f} ms older than the last",
+                    )
+                    return
+                step = 1 if self._lockstep else max(1, round(gap_ns / self._period_ns))
+                if step > 1:
+                    self.stats.missed_feedback += step - 1
+                seq = (last_seq + step) % SEQ_MODULO
+            self._last_stamp_ns = stamp_ns
+            self._last_data = bytes(data)
         self._seq = seq
-        self._last_stamp_ns = stamp_ns
-        self._last_data = bytes(data)
         hb = self._heartbeat
         enabled = hb is not None and hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0
         fault = hb is not None and hb.axis_error != 0
         self.stats.feedback += 1
         self._pending = Feedback(
             now_ns, seq, (counts,), (counts,), (counts / self._counts_per_unit,), enabled, fault, False
+        )
+
+    def _stale(self, now_ns: int, what: str) -> None:
+        self.stats.stale_feedback += 1
+        self._event(
+            now_ns, LinkEventKind.STALE_FEEDBACK, f"node {self._node}: encoder estimates {what}; discarded"
         )
 
     def _on_heartbeat(self, msg: can.Message, now_ns: int) -> None:

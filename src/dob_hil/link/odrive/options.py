@@ -9,7 +9,9 @@ encoder_cpr                      the encoder's counts per turn (required, >= 1):
                                  turns are quantized to it for the controller
 encoder_msg_rate_ms              the drive's ``can.encoder_msg_rate_ms``: the cyclic
                                  Get_Encoder_Estimates that clock the loop; must equal the
-                                 control period (default 1)
+                                 control period (default 1). 0: no cyclic estimates, the
+                                 host's RTR Get_Encoder_Estimates triggers each sample
+                                 (host-clocked; only where the profile is host-clocked)
 heartbeat_msg_rate_ms            the drive's ``can.heartbeat_msg_rate_ms`` (default 10):
                                  axis errors reach the host at this rate
 clear_fault                      send Clear_Errors before enabling (default false)
@@ -54,27 +56,42 @@ def parse_options(s: ConfigSection) -> OdriveOptions:
     return OdriveOptions(
         torque_constant_Nm_per_A=kt,
         encoder_cpr=s.integer("encoder_cpr", low=1, high=1 << 24),
-        encoder_msg_rate_ms=s.integer("encoder_msg_rate_ms", 1, low=MIN_MSG_RATE_MS, high=60_000),
+        encoder_msg_rate_ms=s.integer("encoder_msg_rate_ms", 1, low=0, high=60_000),
         heartbeat_msg_rate_ms=s.integer("heartbeat_msg_rate_ms", 10, low=MIN_MSG_RATE_MS, high=60_000),
         clear_fault=s.boolean("clear_fault", False),
         firmware=s.string("firmware", "0.6", FIRMWARE_LINES),
     )
 
 
-def odrive_options(config: Config) -> OdriveOptions:
-    """The parsed ``[drive.odrive]`` table, checked against the control period.
+def odrive_options(config: Config, *, host_clocked: bool | None = None) -> OdriveOptions:
+    """The parsed ``[drive.odrive]`` table, checked against the control period and the clocking.
 
-    The loop is clocked by the drive's cyclic encoder estimates, so their rate must be the
-    control period: a ConfigError names both numbers otherwise.
+    Drive-clocked (``host_clocked=False``): the drive's cyclic encoder estimates clock the loop, so
+    their rate must be the control period. Host-clocked (True): the host's RTR triggers each
+    sample, so the cyclic estimates must be off (``encoder_msg_rate_ms = 0``). None accepts both
+    (the simulated drive, which serves either). A ConfigError names the numbers otherwise.
     """
     options = config.drive.options
     if not isinstance(options, OdriveOptions):
         raise ConfigError("drive.odrive", "missing (the ODrive profile needs this table)")
     period_ns = config.plant.period_ns
-    if options.encoder_msg_rate_ms * 1_000_000 != period_ns:
+    rate = options.encoder_msg_rate_ms
+    if rate == 0:
+        if host_clocked is False:
+            raise ConfigError(
+                "drive.odrive.encoder_msg_rate_ms",
+                "0 (RTR-triggered estimates) needs a host-clocked profile; set it to the control "
+                f"period ({period_ns / 1e6:g} ms)",
+            )
+    elif host_clocked is True:
         raise ConfigError(
             "drive.odrive.encoder_msg_rate_ms",
-            f"{options.encoder_msg_rate_ms} ms must equal the control period "
+            f"{rate} ms: the host's RTR triggers each sample; set 0 (no cyclic estimates)",
+        )
+    elif rate * 1_000_000 != period_ns:
+        raise ConfigError(
+            "drive.odrive.encoder_msg_rate_ms",
+            f"{rate} ms must equal the control period "
             f"({period_ns / 1e6:g} ms): the drive's encoder estimates clock the loop",
         )
     return options

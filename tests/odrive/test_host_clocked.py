@@ -1,0 +1,95 @@
+"""The host-clocked (RTR-triggered) mode, ready for a host-clocked runner: with
+``encoder_msg_rate_ms = 0`` the drive sends no cyclic estimates, the host's RTR
+Get_Encoder_Estimates (``send_sync()``) is each sample's trigger and its index the sequence
+number. In lockstep the link sends the next trigger after each command, so today's lockstep
+runner drives it unchanged. The shipped profile is still drive-clocked: its descriptor refuses
+rate 0, naming the setting."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from dob_hil.config import Config
+from dob_hil.errors import ConfigError
+from dob_hil.link.base import LinkEventKind
+from dob_hil.link.odrive.codec import CmdId
+from dob_hil.link.odrive.link import OdriveDriveLink
+from dob_hil.link.odrive.options import odrive_options
+from dob_hil.log import read_log
+from dob_hil.loop.session import RunOptions, run_session
+from dob_hil.profiles import Clocking
+from dob_hil.profiles import odrive as odrive_profile
+
+from .odrive_support import make_rig, odrive_config, tracking_rms
+
+
+def rtr_config(tmp_path: Path) -> Config:
+    return odrive_config(tmp_path, odrive={"encoder_msg_rate_ms": 0})
+
+
+def test_rtr_triggers_clock_the_lockstep_drive(tmp_path: Path) -> None:
+    config = rtr_config(tmp_path)
+    rig = make_rig(config)
+    try:
+        # the rig's link was built for the drive-clocked check; rebuild it for RTR mode
+        rig.link = OdriveDriveLink(rig.host_bus, config.drive, odrive_options(config, host_clocked=True),
+                                   config.plant.period_ns, event_hook=rig.events.append)  # fmt: skip
+        rig.link.enable_lockstep(rig.drive.service)
+        for k in range(300):
+            rig.drive.service()
+            fb = rig.link.receive_feedback(0)
+            assert fb is not None and fb.seq == k % 256 and rig.drive.period_index == k
+            rig.link.send_command(rig.link.quantize((0.1,))[0], fb.seq)
+        assert rig.drive.stats.rtr_answered == 300
+        assert not rig.events or {e.kind for e in rig.events} == {LinkEventKind.DRIVE_STATE}
+    finally:
+        rig.close()
+
+
+def test_unasked_estimates_are_stale_in_rtr_mode(tmp_path: Path) -> None:
+    config = rtr_config(tmp_path)
+    rig = make_rig(config)
+    try:
+        link = OdriveDriveLink(rig.host_bus, config.drive, odrive_options(config, host_clocked=True),
+                               config.plant.period_ns, event_hook=rig.events.append)  # fmt: skip
+        rig.inject(CmdId.GET_ENCODER_ESTIMATES, bytes(8))
+        assert link.receive_feedback(0) is None
+        assert [e.kind for e in rig.events] == [LinkEventKind.STALE_FEEDBACK]
+        link.send_sync()
+        rig.inject(CmdId.GET_ENCODER_ESTIMATES, bytes(8))
+        rig.inject(CmdId.GET_ENCODER_ESTIMATES, bytes(8))  # a second answer to the same trigger
+        fb = link.receive_feedback(0)
+        assert fb is not None and fb.seq == 0
+        assert link.receive_feedback(0) is None and link.stats.stale_feedback == 2
+    finally:
+        rig.close()
+
+
+def test_drive_clocked_profile_refuses_rate_zero(tmp_path: Path) -> None:
+    config = rtr_config(tmp_path)
+    with pytest.raises(
+        ConfigError, match=r"encoder_msg_rate_ms: 0 \(RTR-triggered estimates\) needs a host-clocked"
+    ):
+        odrive_options(config, host_clocked=False)
+    with pytest.raises(ConfigError, match=r"encoder_msg_rate_ms: 1 ms: the host's RTR triggers each sample"):
+        odrive_options(odrive_config(tmp_path, name="cyclic"), host_clocked=True)
+
+
+def test_host_clocked_session_in_lockstep_halves_the_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the profile does once it is declared host-clocked: the same session, the same DOB result."""
+    monkeypatch.setattr(
+        odrive_profile, "PROFILE", dataclasses.replace(odrive_profile.PROFILE, clocking=Clocking.HOST)
+    )
+    config = rtr_config(tmp_path)
+    rms = {}
+    for dob in (True, False):
+        log = tmp_path / f"rtr-{dob}.mcap"
+        summary = run_session(config, RunOptions(dob_enabled=dob, log_path=log))
+        assert summary.exit_reason == "completed" and summary.missing_samples == 0
+        rms[dob] = tracking_rms(read_log(log))
+    assert rms[True] <= 0.5 * rms[False], rms
