@@ -1,13 +1,11 @@
 """The host-clocked (RTR-triggered) mode, ready for a host-clocked runner: with
 ``encoder_msg_rate_ms = 0`` the drive sends no cyclic estimates, the host's RTR
-Get_Encoder_Estimates (``send_sync()``) is each sample's trigger and its index the sequence
-number. In lockstep the link sends the next trigger after each command, so today's lockstep
-runner drives it unchanged. The shipped profile is still drive-clocked: its descriptor refuses
-rate 0, naming the setting."""
+Get_Encoder_Estimates (``send_sync()`` / ``send_trigger()``) is each sample's trigger and its
+index the sequence number; the lockstep drive advances one period per trigger. The shipped
+profile is still drive-clocked: its descriptor refuses rate 0, naming the setting."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
@@ -18,12 +16,8 @@ from dob_hil.link.base import LinkEventKind
 from dob_hil.link.odrive.codec import CmdId
 from dob_hil.link.odrive.link import OdriveDriveLink
 from dob_hil.link.odrive.options import odrive_options
-from dob_hil.log import read_log
-from dob_hil.loop.session import RunOptions, run_session
-from dob_hil.profiles import Clocking
-from dob_hil.profiles import odrive as odrive_profile
 
-from .odrive_support import make_rig, odrive_config, tracking_rms
+from .odrive_support import make_rig, odrive_config
 
 
 def rtr_config(tmp_path: Path) -> Config:
@@ -38,7 +32,8 @@ def test_rtr_triggers_clock_the_lockstep_drive(tmp_path: Path) -> None:
         rig.link = OdriveDriveLink(rig.host_bus, config.drive, odrive_options(config, host_clocked=True),
                                    config.plant.period_ns, event_hook=rig.events.append)  # fmt: skip
         rig.link.enable_lockstep(rig.drive.service)
-        for k in range(300):
+        for k in range(300):  # what a host-clocked lockstep runner does: trigger, service, receive
+            rig.link.send_trigger()
             rig.drive.service()
             fb = rig.link.receive_feedback(0)
             assert fb is not None and fb.seq == k % 256 and rig.drive.period_index == k
@@ -76,20 +71,3 @@ def test_drive_clocked_profile_refuses_rate_zero(tmp_path: Path) -> None:
         odrive_options(config, host_clocked=False)
     with pytest.raises(ConfigError, match=r"encoder_msg_rate_ms: 1 ms: the host's RTR triggers each sample"):
         odrive_options(odrive_config(tmp_path, name="cyclic"), host_clocked=True)
-
-
-def test_host_clocked_session_in_lockstep_halves_the_error(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """What the profile does once it is declared host-clocked: the same session, the same DOB result."""
-    monkeypatch.setattr(
-        odrive_profile, "PROFILE", dataclasses.replace(odrive_profile.PROFILE, clocking=Clocking.HOST)
-    )
-    config = rtr_config(tmp_path)
-    rms = {}
-    for dob in (True, False):
-        log = tmp_path / f"rtr-{dob}.mcap"
-        summary = run_session(config, RunOptions(dob_enabled=dob, log_path=log))
-        assert summary.exit_reason == "completed" and summary.missing_samples == 0
-        rms[dob] = tracking_rms(read_log(log))
-    assert rms[True] <= 0.5 * rms[False], rms

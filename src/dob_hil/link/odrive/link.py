@@ -206,7 +206,6 @@ class OdriveDriveLink:
         self._last_data = b""
         self._lockstep = False  # set by enable_lockstep: one estimate per sample, no wall clock
         self._rtr_mode = options.encoder_msg_rate_ms == 0  # host-clocked: estimates only on RTR
-        self._auto_trigger = False  # lockstep + RTR mode: send_command sends the next trigger
         self._triggers = 0  # RTR triggers sent
         self._answered = True  # the last trigger was answered (a second answer is stale)
         self._heartbeat: codec.Heartbeat | None = None
@@ -275,18 +274,32 @@ class OdriveDriveLink:
         if clamped:
             self.stats.clamped_commands += 1
         self._send(self._torque_id, _TORQUE.pack(torque), "Set_Input_Torque")
-        tx_ns = self._clock_ns()
-        if self._auto_trigger:  # lockstep, host-clocked: the next sample's trigger follows at once
-            self.send_sync()
-        return tx_ns
+        return self._clock_ns()
 
     def send_sync(self) -> int:
         """RTR Get_Encoder_Estimates, the trigger of the next sample: the drive answers with the
-        estimates sampled on its arrival, which get the trigger's index as sequence number."""
+        estimates sampled on its arrival, which get the trigger's index as sequence number (with
+        ``encoder_msg_rate_ms = 0``). Frames still queued are read (and judged) first."""
+        self.drain()
+        self._pending = None  # an answer not taken before the next trigger is late: not a sample
         self._send(self._estimates_id, b"", "Get_Encoder_Estimates (RTR)", remote=True)
         self._triggers += 1
         self._answered = False
         return self._clock_ns()
+
+    send_trigger = send_sync  # the host-clocked runner's name for it
+
+    def drain(self) -> None:
+        """Read and judge the frames already queued, without blocking (host-clocked runners)."""
+        while (msg := self._bus.recv(0.0)) is not None:
+            self._consume(msg)
+
+    def describe_fault(self, wait_ns: int = 0) -> str:
+        """The last heartbeat's account of the drive's state and axis errors (for the exit reason)."""
+        if wait_ns > 0:
+            self.receive_feedback(wait_ns)
+        hb = self._heartbeat
+        return "no heartbeat" if hb is None else describe_heartbeat(hb)
 
     # --- enable / stop ---------------------------------------------------------------------------
     def request_enable(self) -> None:
@@ -352,10 +365,6 @@ class OdriveDriveLink:
         for _ in range(max_rounds):
             service()
             if self.poll_enabled():
-                if self._rtr_mode:  # host-clocked: the host triggers every sample, the first now
-                    self._auto_trigger = True
-                    self._pending = None
-                    self.send_sync()
                 return
         raise self._not_enabled(f"after {max_rounds} rounds of the simulated drive")
 
