@@ -30,7 +30,9 @@ def write_design_outputs(
     load = refuse_overload(profile.bus_load(config))  # refuses a load above 100 %
     result = design_with_diagnostics(config)
     analysis = analyze(result, config)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    from dob_hil.commands.paths import ensure_dir
+
+    ensure_dir(out_dir, "--out")
     design_path = out_dir / DESIGN_FILE_NAME
     result.design.save(design_path)
     files = [design_path]

@@ -66,7 +66,7 @@ class CsvReference:
     """Columns ``time_s, position[, velocity]`` with a header row; times strictly increasing."""
 
     def __init__(self, n_states: int, period_s: float, path: Path) -> None:
-        times, positions, velocities = _read_csv(path)
+        times, positions, velocities = read_reference_csv(path)
         self._n = n_states
         self._period_s = period_s
         self._t = np.asarray(times)
@@ -83,13 +83,27 @@ class CsvReference:
         return _state(self._n, position, velocity)
 
 
-def _read_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]:
+MAX_CSV_BYTES = 64 * 1024 * 1024  # 64 MiB: about two million rows
+MAX_CSV_VALUE = 1e6  # |position|, |velocity| in output units; times up to this many seconds
+
+
+def read_reference_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]:
+    """Read and check a reference CSV: times, positions and (if the column is there) velocities.
+
+    Errors name the line and the problem, never the file's content (the path may be any file)."""
     name = f"reference.path ({path})"
     try:
+        size = path.stat().st_size
+        if size > MAX_CSV_BYTES:
+            raise ConfigError(name, f"is {size} bytes; at most {MAX_CSV_BYTES} (64 MiB)")
         with path.open(newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
     except OSError as exc:
-        raise ConfigError(name, f"cannot read: {exc}") from None
+        raise ConfigError(name, f"cannot read: {exc.strerror or type(exc).__name__}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(name, f"not UTF-8 text (byte {exc.start} cannot be decoded)") from None
+    except csv.Error as exc:
+        raise ConfigError(name, f"not a readable CSV file ({str(exc).split(':')[0]})") from None
     if len(rows) < 2:
         raise ConfigError(name, "needs a header row and at least one data row")
     header = [h.strip() for h in rows[0]]
@@ -98,7 +112,7 @@ def _read_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]
         or len(header) > 3
         or (len(header) == 3 and header[2] != "velocity")
     ):
-        raise ConfigError(name, f"header must be time_s,position[,velocity]; got {','.join(header)}")
+        raise ConfigError(name, "line 1: the header must be time_s,position or time_s,position,velocity")
     times: list[float] = []
     positions: list[float] = []
     velocities: list[float] = []
@@ -107,18 +121,24 @@ def _read_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]
             continue
         if len(row) != len(header):
             raise ConfigError(name, f"line {line}: expected {len(header)} columns, got {len(row)}")
-        try:
-            values = [float(c) for c in row]
-        except ValueError:
-            raise ConfigError(name, f"line {line}: not a number in {row}") from None
+        values: list[float] = []
+        for column, cell in enumerate(row, start=1):
+            try:
+                values.append(float(cell))
+            except ValueError:
+                raise ConfigError(name, f"line {line}, column {column}: not a number") from None
         if not all(math.isfinite(v) for v in values):
             raise ConfigError(name, f"line {line}: non-finite value")
+        if any(abs(v) > MAX_CSV_VALUE for v in values):
+            raise ConfigError(name, f"line {line}: a value beyond +-{MAX_CSV_VALUE:g}")
         if times and values[0] <= times[-1]:
             raise ConfigError(name, f"line {line}: time {values[0]} does not increase")
         times.append(values[0])
         positions.append(values[1])
         if len(values) == 3:
             velocities.append(values[2])
+    if not times:
+        raise ConfigError(name, "needs at least one data row")
     return times, positions, velocities if len(header) == 3 else None
 
 

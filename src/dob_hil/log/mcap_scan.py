@@ -50,6 +50,7 @@ OP_NAMES: Final = {
     0x0F: "DataEnd",
 }
 FOOTER_SIZE: Final = 1 + 8 + 20
+MAX_ATTACHMENT_BYTES: Final = 16 << 20  # design.json and config.toml are a few KB
 # Records a data section may hold (our writer writes no Message outside a chunk; one is reported).
 _DATA_SECTION_OPS: Final = frozenset({0x03, 0x04, 0x06, 0x07, 0x09, 0x0C, 0x0F})
 _OP_LEN = struct.Struct("<BQ")
@@ -329,8 +330,14 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
                     name, data = _parse_metadata(buf, start, end)
                     fmap.metadata[name] = data
                 elif op == OP_ATTACHMENT:
-                    name, blob = _parse_attachment(buf, start, end)
-                    fmap.attachments[name] = blob
+                    if length > MAX_ATTACHMENT_BYTES:
+                        fmap.warnings.append(
+                            f"record at byte {pos}: attachment of {length} bytes (more than "
+                            f"{MAX_ATTACHMENT_BYTES}); skipped"
+                        )
+                    else:
+                        name, blob = _parse_attachment(buf, start, end)
+                        fmap.attachments[name] = blob
                 elif op == OP_DATA_END:
                     if summary is not None and end != summary.data_end:
                         raise RecordError(f"it ends at byte {end}, the summary starts at {summary.data_end}")
