@@ -2,14 +2,20 @@
 
 Clocking: ODrive has no SYNC. The drive sends Get_Encoder_Estimates every
 ``encoder_msg_rate_ms`` (set to the control period) and the host answers each with
-Set_Input_Torque, which the drive applies when it arrives; ``send_sync()`` (an RTR for the
-estimates) is there for a host-clocked runner. ODrive's cyclic messages are configured in whole
-milliseconds, so the period is 1 ms at least and a whole number of milliseconds.
+Set_Input_Torque, which the drive applies when it arrives. ODrive's cyclic messages are configured
+in whole milliseconds, so the period is 1 ms at least and a whole number of milliseconds.
 
-Input delay: the torque acts from its arrival, a fraction of a period after the estimates were
-sampled (bus time of the two 8-byte frames, about 0.27 ms at 1 Mbit/s worst case, plus the host's
-turnaround), exactly as with the native profile: no whole sample of delay, so
-``input_delay_samples = 0``. The fraction is unmodelled, as for the native profile.
+Host-clocked, the preferred clocking (no drift between two clocks, the host's deadlines are the
+sample instants), is implemented in the link and the simulated drive and tested in lockstep:
+``encoder_msg_rate_ms = 0`` turns the cyclic estimates off and the host's RTR
+Get_Encoder_Estimates (``send_trigger()``) becomes each sample's trigger, answered with the
+estimates sampled on its arrival. The profile switches to it with ``clocking=Clocking.HOST``
+(and ``encoder_msg_rate_ms = 0`` in the scenario) once the host-clocked runner is in main.
+
+Input delay: either way the torque acts from its arrival, a fraction of a period after the
+estimates were sampled (bus time of the frames, about 0.27 ms at 1 Mbit/s worst case for the two
+8-byte frames, plus the host's turnaround), exactly as with the native profile: no whole sample
+of delay, so ``input_delay_samples = 0``; the fraction is unmodelled, as for the native profile.
 """
 
 from __future__ import annotations
