@@ -117,7 +117,7 @@ def main() -> None:
         channel = udp_channel()
     except Unavailable as exc:
         skip(str(exc))
-    node_id = random.randint(2, 126)
+    node_id = random.randint(2, 15)  # the native protocol has nodes 0..15
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp_name:
         tmp = Path(tmp_name)
         cfg_path = node_config(tmp, node_id, args.patience_periods or None)

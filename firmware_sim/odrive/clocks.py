@@ -56,7 +56,10 @@ class OdriveLockstep:
             if msg is None:
                 return n
             n += 1
-            if msg.is_extended_id or msg.is_error_frame:
+            if msg.is_error_frame:
+                core.stats.rx_errors += 1
+                continue
+            if msg.is_extended_id:
                 core.stats.frames_ignored += 1
                 continue
             was_closed = core.closed_loop
@@ -111,7 +114,11 @@ class OdriveLockstep:
         if self.core.silent:
             self.core.stats.frames_suppressed += 1
             return False
-        self.bus.send(can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False))
+        # stamped with the simulated time, as a drive's controller stamps on its own clock
+        stamp_s = self.core.time_ns * 1e-9
+        self.bus.send(
+            can.Message(timestamp=stamp_s, arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        )
         return True
 
 
@@ -218,7 +225,11 @@ class OdriveRealtime:
         recv = self.bus.recv
         while not self._stop.is_set():
             msg = recv(RECV_POLL_S)
-            if msg is None or msg.is_extended_id or msg.is_error_frame:
+            if msg is None or msg.is_extended_id:
+                continue
+            if msg.is_error_frame:
+                with self._lock:
+                    core.stats.rx_errors += 1
                 continue
             if msg.arbitration_id >> 5 != core.node_id:
                 continue  # another node's frame

@@ -72,6 +72,7 @@ class OdriveStats:
     overruns: int = 0
     send_failures: int = 0
     frames_suppressed: int = 0
+    rx_errors: int = 0  # error frames received
 
 
 class OdriveCore:

@@ -103,6 +103,8 @@ class SimulatedOdrive:
     def axis_state(self) -> AxisState:
         return AxisState.CLOSED_LOOP_CONTROL if self.enabled else AxisState.IDLE
 
+    state = axis_state  # what the standalone drive reports on stopping
+
     @property
     def axis_error(self) -> int:
         core = self._realtime.core if self._realtime is not None else self._need_lockstep("axis_error").core

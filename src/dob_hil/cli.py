@@ -86,6 +86,22 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         )
         p.add_argument("--freeze-gc", action="store_true", help="gc.freeze() and gc.disable() (default: off)")
         p.add_argument(
+            "--clear-fault",
+            action="store_true",
+            help="send ClearFault before enabling (a drive left in FAULT, e.g. by a killed run)",
+        )
+        p.add_argument(
+            "--feedback-timeout-periods",
+            type=int,
+            help="host timeout: periods without feedback that end the run (drive.feedback_timeout_periods)",
+        )
+        p.add_argument(
+            "--watchdog-periods",
+            type=int,
+            help="the embedded drive's command watchdog (drive.watchdog_periods; for a drive in "
+            "another process, give it there: python -m firmware_sim --watchdog-periods)",
+        )
+        p.add_argument(
             "--no-progress",
             action="store_true",
             help="no progress bar (drawn only on a terminal, after 0.5 s)",

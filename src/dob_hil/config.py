@@ -25,6 +25,7 @@ from dob_hil.config_schema import (
     MAX_STATES,
 )
 from dob_hil.errors import ConfigError
+from dob_hil.loop.envelope import SafetyConfig, parse_safety
 
 ConfigSection = _Section  # what a profile's parse_options receives: its [drive.<profile>] table
 
@@ -115,6 +116,7 @@ class DriveConfig:
     feedback_timeout_periods: int = 10
     # the profile's own settings, parsed by its descriptor from [drive.<profile>] (None: it has none)
     options: object = None
+    clear_fault: bool = False  # send ClearFault before enabling (recover a drive left in FAULT)
 
 
 @dataclass(frozen=True)
@@ -201,6 +203,7 @@ class Config:
     run: RunConfig
     source: Path | None = None
     text: str = ""
+    safety: SafetyConfig = field(default_factory=SafetyConfig)  # [safety]: dob_hil.loop.envelope
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,8 +255,9 @@ def parse_config(data: Mapping[str, Any], source: Path | None = None, text: str 
     sim = _parse_sim(root.sub("sim"), plant)
     reference = _parse_reference(root.sub("reference"), base_dir, plant)
     run = _parse_run(root.sub("run"))
+    safety = parse_safety(root.sub("safety"))
     root.finish()
-    return Config(name, plant, design, drive, sim, reference, run, source, text)
+    return Config(name, plant, design, drive, sim, reference, run, source, text, safety)
 
 
 def _parse_name(meta: _Section, source: Path | None) -> str:
@@ -395,6 +399,7 @@ def _parse_drive(s: _Section) -> DriveConfig:
         encoder_bits=s.get("encoder_bits"),
         watchdog_periods=s.get("watchdog_periods"),
         feedback_timeout_periods=s.get("feedback_timeout_periods"),
+        clear_fault=s.get("clear_fault"),
         options=options,
     )
     if d.current_limit_A / d.dac_lsb_A > 32767:

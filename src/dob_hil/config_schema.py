@@ -190,6 +190,8 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "without a command.", unit="periods", default=10, low=1, high=100_000),
         _f("feedback_timeout_periods", "integer", "The host stops the run after this many periods "
            "without feedback.", unit="periods", default=10, low=1, high=100_000),
+        _f("clear_fault", "boolean", "Clear a fault the drive reports (e.g. one left by a killed "
+           "run) before enabling; `dob-hil run --clear-fault` sets it.", default=False),
     )),
     SectionSpec("sim", "The simulated drive (`firmware_sim`): plant integration and impairments.", (
         _f("substeps", "integer", "Integration substeps per period (ground-truth resolution).",

@@ -105,9 +105,9 @@ def test_importing_the_design_package_stays_light() -> None:
 def test_design_reports_the_worst_case_bus_load(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["design", "paper-step", "--json", "--no-plots", "--out", str(tmp_path)]) == 0
     load = json.loads(capsys.readouterr().out)["bus_load"]
-    # 6-byte feedback (115 bit) + 3-byte command (85 bit) + a 10 Hz 1-byte heartbeat, 1 Mbit/s, 300 us
-    assert load["frame_bits"] == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 65}
-    assert load["worst_case_fraction"] == pytest.approx((115 + 85 + 65 * 10 * 300e-6) / 300, rel=1e-9)
+    # 6-byte feedback (115 bit) + 3-byte command (85 bit) + a 10 Hz 2-byte heartbeat, 1 Mbit/s, 300 us
+    assert load["frame_bits"] == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 75}
+    assert load["worst_case_fraction"] == pytest.approx((115 + 85 + 75 * 10 * 300e-6) / 300, rel=1e-9)
 
 
 def test_design_refuses_an_impossible_bus_load(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

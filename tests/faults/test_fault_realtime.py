@@ -4,7 +4,7 @@ FaultyBus on the host's end).
 
 No wall-clock figure is asserted: periods are counted from sequence numbers and the drive's own
 period index (its ground truth), and the host timeout is only checked not to trip early. Timeouts
-are widened to 1000 periods (0.3 s) so that a stall of a loaded CI machine does not end a run.
+are widened to 10000 periods (3 s) so that a stall of a loaded CI machine does not end a run.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ from fault_support import (
     run_case,
     write_config,
 )
-from standalone import TruthReceiver, node_id_for_worker, standalone_drive, udp_channel_or_skip
+from standalone import TruthReceiver, node_id_for_worker, standalone_drive
+from udp_isolation import UdpChannel
 
 from dob_hil.link.protocol import DriveState, FrameKind
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING
@@ -36,7 +37,7 @@ from firmware_sim.faulty_bus import FaultPlan
 
 pytestmark = pytest.mark.realtime
 
-PATIENCE = 1000  # watchdog and host timeout, periods (0.3 s: the tests share 2 cores with others)
+PATIENCE = 10_000  # watchdog and host timeout, periods (3 s: the tests share 2 cores with CPU hogs)
 DURATION_S = 0.6
 N_CMD = 600  # host-side faults start at the host's 600th command (0.18 s into the run)
 
@@ -77,8 +78,8 @@ def _plan(kind: str, node: int) -> FaultPlan | None:
 
 
 @pytest.mark.parametrize("case", RT_CASES, ids=[c.name for c in RT_CASES])
-def test_realtime_fault_case(case: RtCase, tmp_path: Path) -> None:
-    channel = udp_channel_or_skip()
+def test_realtime_fault_case(case: RtCase, tmp_path: Path, udp_channel: UdpChannel) -> None:
+    channel = udp_channel.channel
     node = node_id_for_worker()
     # the drive's faults are timed from its first enable (the run's start), on the drive's clock
     config, cfg_path = write_config(
@@ -90,13 +91,14 @@ def test_realtime_fault_case(case: RtCase, tmp_path: Path) -> None:
     truth = TruthReceiver()
     try:
         with standalone_drive(cfg_path, channel, truth_port=truth.port) as proc:
-            duration = DURATION_S if not case.faults else 1.0  # ends at the fault (0.3 s)
+            # ends at the fault (0.3 s), or PATIENCE periods after the drive fell silent
+            duration = DURATION_S if not case.faults else 5.0
             r = run_case(
                 config, tmp_path / "rt.mcap", _plan(case.plan, node), interface="udp_multicast",
                 channel=channel, duration_s=duration, enable_timeout_s=15.0,
             )  # fmt: skip
             if case.trip == "watchdog":  # wait (bounded) for the drive's watchdog to trip on its own
-                deadline = time.monotonic() + 5.0
+                deadline = time.monotonic() + 60.0
                 while time.monotonic() < deadline and not any(
                     t.drive_state is DriveState.FAULT for t in truth.samples[-50:]
                 ):
@@ -151,7 +153,7 @@ def test_realtime_fault_case(case: RtCase, tmp_path: Path) -> None:
         abort_ns = next(int(e["time_ns"]) for e in data.events if e["kind"] == "run_aborted")
         m.trip_periods = (abort_ns - last_rx_ns) // config.plant.period_ns
         assert m.trip_periods >= PATIENCE - 1  # never before the configured timeout
-        assert abort_ns - last_rx_ns < 1_000_000_000  # and it did trip (bound against a hang only)
+        assert abort_ns - last_rx_ns < 60_000_000_000  # and it did trip (bound against a hang only)
     elif case.trip == "watchdog":
         # the drive got no command after the host's N_CMD-th; its watchdog trips on its own. On the
         # drive's clock: the last change of its applied current is the period the last command

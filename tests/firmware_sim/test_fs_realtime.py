@@ -25,17 +25,22 @@ from dob_hil.link.protocol import (
     encode_control,
 )
 from firmware_sim import GroundTruth, SimulatedDrive
-from firmware_sim.core import DriveCore, FrameResult
+from firmware_sim.core import FIRST_COMMAND_TIMEOUT_NS, DriveCore, FrameResult
 
 PERIOD_US = 1000.0
 PLANT = {"period_us": PERIOD_US}
 NO_DIST = {"disturbance": None}
 
 
-def collect(host: Host, duration_s: float) -> list[object]:
+PATIENCE_S = 60.0  # a bound against a hang only: a loaded machine may starve the drive's threads
+
+
+def collect(host: Host, n_feedback: int, timeout_s: float = PATIENCE_S) -> list[object]:
+    """Frames until ``n_feedback`` feedbacks arrived (or ``timeout_s``, a bound against a hang):
+    counts, not wall time, so that a starved machine only makes it slower."""
     frames: list[object] = []
-    end = time.monotonic() + duration_s
-    while time.monotonic() < end:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and len(feedbacks(frames)) < n_feedback:  # type: ignore[arg-type]
         frames.extend(host.drain(0.01))
     return frames
 
@@ -51,11 +56,11 @@ def test_feedback_every_period_in_order(bus_pair: tuple[can.BusABC, can.BusABC])
     cfg = make_config(plant=PLANT, sim=NO_DIST)
     with SimulatedDrive(drive_bus, cfg, clock="realtime", truth_sink=truth.append) as drive:
         assert drive.running
-        frames = collect(host, 0.25)
+        frames = collect(host, 50)
         drive.check()
     fbs = feedbacks(frames)  # type: ignore[arg-type]
     stats = drive.stats
-    assert len(fbs) >= 50  # ~250 expected; the machine may be loaded
+    assert len(fbs) >= 50
     assert fbs[0].seq == 0 and fbs[0].status == Status(0)
     steps = seq_steps(fbs)
     assert all(s >= 1 for s in steps)
@@ -70,22 +75,30 @@ def test_host_loop_enables_and_commands_in_real_time(bus_pair: tuple[can.BusABC,
     host_bus, drive_bus = bus_pair
     host = Host(host_bus)
     truth: list[GroundTruth] = []
-    cfg = make_config(plant=PLANT, sim=NO_DIST, drive={"watchdog_periods": 1000})
+    # a watchdog of 60 s (60000 periods): a starved test process must not trip it
+    cfg = make_config(plant=PLANT, sim=NO_DIST, drive={"watchdog_periods": 60_000})
     with SimulatedDrive(drive_bus, cfg, clock="realtime", truth_sink=truth.append) as drive:
         host.control(ControlRequest.ENABLE)
         host.wait_for(HeartbeatFrame)
         answered = 0
-        end = time.monotonic() + 0.3
-        while time.monotonic() < end:
+        end = time.monotonic() + PATIENCE_S  # a bound against a hang only; counts end the loop
+        while time.monotonic() < end and drive.stats.commands_accepted < 20:
+            newest = None
             for f in host.drain(0.01):
                 if isinstance(f, FeedbackFrame) and f.status & Status.ENABLED:
-                    host.command(1024, f.seq)  # 0.5 A
-                    answered += 1
-        time.sleep(0.01)
+                    newest = f
+            if newest is not None:  # answer the newest only, as the host loop does
+                host.command(1024, newest.seq)  # 0.5 A
+                answered += 1
+        deadline = time.monotonic() + PATIENCE_S
+        judged = lambda: drive.stats.commands_accepted + drive.stats.commands_stale  # noqa: E731
+        while judged() < answered and time.monotonic() < deadline:
+            time.sleep(0.01)  # the last command may still be on its way to the drive
         assert drive.state is DriveState.ENABLED
         stats = drive.stats
-    assert answered >= 20
-    assert stats.commands_accepted >= answered // 2
+    assert stats.commands_accepted >= 20
+    # the virtual bus loses nothing: every command reached the drive and was accepted or judged stale
+    assert stats.commands_accepted + stats.commands_stale == answered
     applied = [t.applied_current_A for t in truth]
     assert 0.5 in applied
     assert set(applied) <= {0.0, 0.5}
@@ -93,18 +106,40 @@ def test_host_loop_enables_and_commands_in_real_time(bus_pair: tuple[can.BusABC,
     assert truth[-1].state[0] > 0.0 and truth[-1].state[1] > 0.0
 
 
-def test_watchdog_trips_without_commands(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+def test_watchdog_trips_once_armed_by_a_first_command(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
     host_bus, drive_bus = bus_pair
     host = Host(host_bus)
     with SimulatedDrive(
         drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
     ) as drive:
         host.control(ControlRequest.ENABLE)
-        frames = host.wait_for(FaultFrame, timeout_s=5.0)
+        frames = host.wait_for(HeartbeatFrame, timeout_s=PATIENCE_S)
+        while True:  # answer the first feedback that reports ENABLED, then fall silent
+            fb = host.wait_for(FeedbackFrame)[-1]
+            assert isinstance(fb, FeedbackFrame)
+            if fb.status & Status.ENABLED:
+                host.command(0, fb.seq)
+                break
+        frames = host.wait_for(FaultFrame, timeout_s=PATIENCE_S)
         frames += host.wait_for(FeedbackFrame)
         assert drive.state is DriveState.FAULT
     assert FaultFrame(FaultCode.WATCHDOG, 5) in frames
     assert feedbacks(frames)[-1].status == Status.FAULT | Status.WATCHDOG  # type: ignore[arg-type]
+
+
+def test_watchdog_without_a_first_command_trips_with_info_0(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    """Not armed, the watchdog allows the host FIRST_COMMAND_TIMEOUT_NS (not watchdog_periods)."""
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    with SimulatedDrive(
+        drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
+    ) as drive:
+        host.control(ControlRequest.ENABLE)
+        frames = host.wait_for(FaultFrame, timeout_s=10.0)
+        assert drive.state is DriveState.FAULT
+        periods = drive.stats.samples
+    assert FaultFrame(FaultCode.WATCHDOG, 0) in frames
+    assert periods * PLANT["period_us"] * 1000 >= FIRST_COMMAND_TIMEOUT_NS  # type: ignore[operator]
 
 
 def test_loss_latency_and_jitter_keep_order(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
@@ -112,10 +147,10 @@ def test_loss_latency_and_jitter_keep_order(bus_pair: tuple[can.BusABC, can.BusA
     host = Host(host_bus)
     sim = {"disturbance": None, "loss_probability": 0.3, "latency_us": 1500.0, "jitter_us": 800.0, "seed": 1}
     with SimulatedDrive(drive_bus, make_config(plant=PLANT, sim=sim), clock="realtime") as drive:
-        frames = collect(host, 0.25)
+        frames = collect(host, 40)
     fbs = feedbacks(frames)  # type: ignore[arg-type]
     stats = drive.stats
-    assert stats.feedback_lost > 0 and len(fbs) > 20
+    assert stats.feedback_lost > 0 and len(fbs) >= 40
     assert all(s >= 1 for s in seq_steps(fbs))  # never reordered
     assert sum(s - 1 for s in seq_steps(fbs)) > 0  # lost frames leave gaps
 
@@ -130,7 +165,7 @@ def test_a_thread_exception_surfaces_in_check_and_stop(bus_pair: tuple[can.BusAB
 
     drive = SimulatedDrive(bus_pair[1], make_config(plant=PLANT), clock="realtime", truth_sink=bad_sink)
     drive.start()
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + PATIENCE_S
     while len(calls) < 3 and time.monotonic() < deadline:
         time.sleep(0.005)
     time.sleep(0.02)

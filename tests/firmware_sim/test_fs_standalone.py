@@ -3,6 +3,7 @@ where it exists), clean stop on SIGINT, exit status 2 for a bad config."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import signal
@@ -16,6 +17,7 @@ from pathlib import Path
 import can
 import pytest
 from fs_support import REPO_ROOT, Host, dump_toml, feedbacks, merged_data, toml_text
+from udp_isolation import private_udp_channel
 
 from dob_hil.link.protocol import ControlRequest, DriveState, FeedbackFrame, HeartbeatFrame, Status
 from firmware_sim.cli import parse_args
@@ -52,20 +54,25 @@ def _open_bus(interface: str, channel: str) -> can.BusABC:
 
 @pytest.fixture(params=["udp_multicast", "socketcan"])
 def bus_spec(request: pytest.FixtureRequest) -> Iterator[tuple[str, str, can.BusABC]]:
-    channel = f"239.74.163.{random.randint(10, 250)}" if request.param == "udp_multicast" else "vcan0"
-    bus = _open_bus(request.param, channel)
-    try:
-        yield request.param, channel, bus
-    finally:
-        bus.shutdown()
+    with contextlib.ExitStack() as stack:
+        if request.param == "udp_multicast":  # a private port in this worker's network namespace
+            channel = stack.enter_context(private_udp_channel()).channel
+        else:
+            channel = "vcan0"
+        bus = _open_bus(request.param, channel)
+        try:
+            yield request.param, channel, bus
+        finally:
+            bus.shutdown()
 
 
 def test_exchange_with_a_standalone_drive(bus_spec: tuple[str, str, can.BusABC], tmp_path: Path) -> None:
     interface, channel, bus = bus_spec
-    node_id = random.randint(20, 120)  # other tests on the same multicast port: filter by id
+    node_id = random.randint(2, 15)  # other tests on the same multicast port: filter by id
     cfg = tmp_path / "drive.toml"
     cfg.write_text(
-        toml_text(plant={"period_us": 1000.0}, drive={"node_id": node_id, "watchdog_periods": 200})
+        # a 60 s watchdog: a starved machine must not trip it between two answers
+        toml_text(plant={"period_us": 1000.0}, drive={"node_id": node_id, "watchdog_periods": 60_000})
     )
     truth_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     truth_sock.bind(("127.0.0.1", 0))
@@ -98,10 +105,10 @@ def test_exchange_with_a_standalone_drive(bus_spec: tuple[str, str, can.BusABC],
         host = Host(bus, node_id)
         host.wait_for(FeedbackFrame, timeout_s=30.0)  # the process is up and streaming
         host.control(ControlRequest.ENABLE)
-        frames = host.wait_for(HeartbeatFrame, timeout_s=5.0)
+        frames = host.wait_for(HeartbeatFrame, timeout_s=30.0)
         assert frames[-1] == HeartbeatFrame(DriveState.ENABLED)
         answered = 0
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 60.0  # a bound against a hang only
         while answered < 20 and time.monotonic() < deadline:
             fb = host.wait_for(FeedbackFrame)[-1]
             assert isinstance(fb, FeedbackFrame)
@@ -166,6 +173,16 @@ def test_bad_config_exits_2_with_one_line(plant: dict[str, object], field: str, 
     assert done.stderr.count("\n") == 1 and field in done.stderr, done.stderr
 
 
+def test_a_node_id_beyond_the_protocol_exits_2_with_one_line(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(dump_toml(merged_data(drive={"node_id": 99})))
+    done = _run([str(cfg), "-i", "virtual", "-c", "unused"], tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and "drive.node_id" in done.stderr and "0..15" in done.stderr, (
+        done.stderr
+    )
+
+
 def test_missing_config_file_exits_2(tmp_path: Path) -> None:
     done = _run([str(tmp_path / "nope.toml")], tmp_path)
     assert done.returncode == 2
@@ -183,7 +200,11 @@ def test_argument_parsing() -> None:
         500000,
         9000,
     )
-    assert args.duration is None and args.spin_us == 100.0
+    assert args.duration is None and args.spin_us == "auto" and args.variant == "reference"
+    assert parse_args(["c.toml", "--spin-us", "25"]).spin_us == 25.0
+    for bad in (["--spin-us", "fast"], ["--spin-us", "-1"], ["--watchdog-periods", "0"]):
+        with pytest.raises(SystemExit):
+            parse_args(["c.toml", *bad])
     with pytest.raises(SystemExit) as info:
         parse_args(["c.toml", "--duration", "-1"])
     assert info.value.code == 2

@@ -10,8 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from standalone import node_id_for_worker, paper_config_for_node, standalone_drive, udp_channel_or_skip
+from log_checks import assert_log_times_monotonic
+from standalone import node_id_for_worker, paper_config_for_node, standalone_drive
+from udp_isolation import UdpChannel
 
+from dob_hil.analysis.loaded import load_log
+from dob_hil.analysis.replay import verify
 from dob_hil.config import load_config
 from dob_hil.link.protocol import FrameKind
 from dob_hil.log import read_log
@@ -21,8 +25,8 @@ from dob_hil.loop.session import RunOptions, run_session
 pytestmark = pytest.mark.realtime
 
 
-def test_realtime_run_over_udp_multicast(tmp_path: Path) -> None:
-    channel = udp_channel_or_skip()
+def test_realtime_run_over_udp_multicast(tmp_path: Path, udp_channel: UdpChannel) -> None:
+    channel = udp_channel.channel
     node_id = node_id_for_worker()
     cfg_path = paper_config_for_node(tmp_path, node_id)
     config = load_config(cfg_path)
@@ -56,5 +60,10 @@ def test_realtime_run_over_udp_multicast(tmp_path: Path) -> None:
     )
     tx_cmd = f[(f["direction"] == 1) & (f["arbitration_id"] == cmd_id)]
     assert bytes(tx_cmd[-1]["data"][:2]) == b"\x00\x00" and tx_cmd[-1]["data"][2] & 0x80 == 0
-    # the controller tracked the step despite running on a wall clock in another process
-    assert abs(s["position"][-1, 0] - 1.0) < 0.2
+    # every logged command is what the controller computes from the logged feedback, bit for bit
+    # (timing-independent: how well it tracks depends on how often a loaded machine starved it)
+    result = verify(load_log(log_path))
+    assert result.identical, result.first_mismatches
+    if filled < len(s) // 100:  # an unstarved run: it tracked the step on a wall clock
+        assert abs(s["position"][-1, 0] - 1.0) < 0.2
+    assert_log_times_monotonic(log_path)

@@ -185,7 +185,7 @@ def test_duplicates_and_reordered_estimates_are_stale(rig: Rig) -> None:
 
 # --- enable, errors, stop -------------------------------------------------------------------------
 def test_enable_sequence_and_safe_stop_frames(tmp_path: Path) -> None:
-    rig = make_rig(odrive_config(tmp_path, odrive={"clear_fault": True}))
+    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": True}))
     try:
         rig.link.enable_lockstep(rig.drive.service)
         assert rig.drive.enabled

@@ -1,6 +1,6 @@
 """A real-time run against the simulated ODrive in another process (``python -m firmware_sim``
-with ``drive.profile = "odrive"``) over python-can's udp_multicast, on a PRIVATE UDP port (the
-port is shared by every multicast group, so other tests' traffic stays off it), logged.
+with ``drive.profile = "odrive"``) over python-can's udp_multicast, in a private network namespace on a
+private UDP port (the port is shared by every multicast group), logged.
 
 No wall-clock figure is asserted (the machine is shared): the run completes, every period is a
 logged sample or an explained gap, the current never exceeds the limit on the wire, the run ends
@@ -10,14 +10,14 @@ samples filled) the controller tracked the step.
 
 from __future__ import annotations
 
-import json
 import random
 import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
-from standalone import standalone_drive, udp_channel_or_skip
+from standalone import standalone_drive
+from udp_isolation import UdpChannel
 
 from dob_hil.config import load_config
 from dob_hil.link.odrive.codec import CmdId
@@ -31,10 +31,9 @@ pytestmark = pytest.mark.realtime
 KT = 0.0827
 
 
-def test_realtime_run_over_udp_multicast(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # a private port for both processes (python-can reads CAN_CONFIG from the environment)
-    monkeypatch.setenv("CAN_CONFIG", json.dumps({"port": random.randint(47000, 48999)}))
-    channel = udp_channel_or_skip()
+def test_realtime_run_over_udp_multicast(tmp_path: Path, udp_channel: UdpChannel) -> None:
+    # a private network namespace and a private port (tests/support/udp_isolation.py)
+    channel = udp_channel.channel
     node_id = random.randint(2, 63)
     # patient timeouts (2 s): a stall of a loaded machine (load 20 on 2 cores seen) must not end the run
     cfg_path = scenario_variant("paper-step-odrive", tmp_path, node_id=node_id, patience_periods=2000)

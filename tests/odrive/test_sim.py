@@ -122,14 +122,14 @@ def test_closed_loop_refused_with_an_active_error_until_clear_errors(rig: Rig) -
 
 
 def test_link_clear_fault_recovers_a_drive_with_errors(tmp_path: Path) -> None:
-    rig = make_rig(odrive_config(tmp_path, odrive={"clear_fault": True}))
+    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": True}))
     try:
         core(rig).set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, 0)
         rig.link.enable_lockstep(rig.drive.service)
         assert rig.drive.enabled
     finally:
         rig.close()
-    rig = make_rig(odrive_config(tmp_path, odrive={"clear_fault": False}))
+    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": False}))
     try:
         core(rig).set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, 0)
         with pytest.raises(DriveFault, match="WATCHDOG_TIMER_EXPIRED"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -16,10 +17,30 @@ def load_run_config(args: argparse.Namespace) -> Config:
     if args.scenario and args.config:
         raise ConfigError("--scenario", "give a config file or --scenario, not both")
     if args.scenario:
-        return load_config(scenario_path(args.scenario))
+        return _drive_overrides(load_config(scenario_path(args.scenario)), args)
     if not args.config:
         raise ConfigError("config", "missing: give a config file or --scenario NAME")
-    return load_config(resolve_config_path(args.config))
+    return _drive_overrides(load_config(resolve_config_path(args.config)), args)
+
+
+def _drive_overrides(config: Config, args: argparse.Namespace) -> Config:
+    """--clear-fault, --feedback-timeout-periods and --watchdog-periods over the [drive] section."""
+    changes: dict[str, object] = {}
+    flags = (
+        ("--feedback-timeout-periods", "feedback_timeout_periods"),
+        ("--watchdog-periods", "watchdog_periods"),
+    )
+    for flag, key in flags:
+        value = getattr(args, key, None)
+        if value is not None:
+            if not 1 <= value <= 100_000:
+                raise ConfigError(flag, f"must be 1..100000 periods, got {value}")
+            changes[key] = value
+    if getattr(args, "clear_fault", False):
+        changes["clear_fault"] = True
+    if not changes:
+        return config
+    return dataclasses.replace(config, drive=dataclasses.replace(config.drive, **changes))  # type: ignore[arg-type]
 
 
 def _plural(n: object, word: str) -> str:

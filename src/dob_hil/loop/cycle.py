@@ -36,6 +36,7 @@ class CycleStats:
     missing: int = 0
     overruns: int = 0
     skipped: int = 0
+    unsequenced_periods: int = 0  # real time: periods a stall hid from the sequence number (by time)
     max_consecutive_missing: int = 0
     max_abs_applied_A: float = 0.0
     compute_ns_max: int = 0
@@ -58,7 +59,13 @@ class ControlCycle:
         C_rows: tuple[tuple[float, ...], ...],
         initial_x_bar: tuple[float, ...] | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
+        sim_time: bool = False,
+        check: Callable[[int, tuple[float, ...], tuple[float, ...]], None] | None = None,
     ) -> None:
+        """``sim_time``: lockstep, where the sample instant ``time_ns`` is simulated time; the
+        sample's rx and tx times are logged on that clock too (the exchange takes no simulated
+        time). ``check(k, position, x_ref)``: called after each command is sent (the safety
+        envelope)."""
         self._update = step.update
         self._predict = step.predict
         self._ref_at = reference.at
@@ -79,6 +86,8 @@ class ControlCycle:
         self._last_codes: tuple[int, ...] = (0,) * step.n_inputs
         self._last_applied: tuple[float, ...] = self._zero_u
         self._last_u_dist: tuple[float, ...] = self._zero_u
+        self._sim_time = sim_time
+        self._check = check
         self.stats = CycleStats()
 
     def on_feedback(self, k: int, time_ns: int, fb: Feedback, lateness_ns: int, overrun: bool) -> None:
@@ -93,13 +102,18 @@ class ControlCycle:
         self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, fb.seq)
+        rx_ns = fb.rx_time_ns
+        if self._sim_time:
+            rx_ns = tx_ns = time_ns
         self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         flags = self._dob_flag | (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if overrun else 0)
         self._log.sample(
-            time_ns, fb.rx_time_ns, tx_ns, lateness_ns, fb.counts, fb.position, x_ref, out.x_hat, x_bar,
+            time_ns, rx_ns, tx_ns, lateness_ns, fb.counts, fb.position, x_ref, out.x_hat, x_bar,
             out.u_fb, out.u_dist, out.u_cmd, applied, k, compute_ns, codes, fb.seq, flags,
         )  # fmt: skip
         self._account(applied, saturated, overrun, compute_ns)
+        if self._check is not None:
+            self._check(k, fb.position, x_ref)
 
     def on_missing(self, k: int, time_ns: int, answers_seq: int, lateness_ns: int, overrun: bool) -> None:
         """Sample ``k`` without (valid) feedback: substitute per the policy, send, log."""
@@ -122,6 +136,8 @@ class ControlCycle:
         self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, answers_seq)
+        if self._sim_time:
+            tx_ns = time_ns
         self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         counts = last.counts if last is not None else (0,) * self.n_outputs
         flags = self._dob_flag | FLAG_MISSING | (FLAG_SATURATED if saturated else 0)

@@ -25,12 +25,14 @@ class RtSettings:
 class RtReport:
     applied: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
+    previous_cpus: set[int] | None = None  # the affinity before, restored by restore_rt_settings
 
 
 def apply_rt_settings(settings: RtSettings) -> RtReport:
     report = RtReport()
     if settings.cpus:
         try:
+            report.previous_cpus = os.sched_getaffinity(0)
             os.sched_setaffinity(0, set(settings.cpus))
             report.applied.append(f"CPU affinity {sorted(settings.cpus)}")
         except (OSError, AttributeError, ValueError) as exc:
@@ -54,7 +56,11 @@ def apply_rt_settings(settings: RtSettings) -> RtReport:
     return report
 
 
-def restore_rt_settings(settings: RtSettings) -> None:
+def restore_rt_settings(settings: RtSettings, report: RtReport | None = None) -> None:
+    """Undo :func:`apply_rt_settings` (the CPU affinity only when given its ``report``)."""
+    if report is not None and report.previous_cpus:
+        with contextlib.suppress(OSError, AttributeError, ValueError):
+            os.sched_setaffinity(0, report.previous_cpus)
     if settings.freeze_gc:
         gc.enable()
         gc.unfreeze()

@@ -14,22 +14,48 @@ instant comes about.
   follows the drive's clock with a slow first-order tracker (64 samples) so that drift between
   the two clocks does not accumulate; lateness is measured against it. Overruns (newer feedback
   already queued when one is read) skip ahead to the newest; gaps are filled with model-only
-  samples; every skip is counted and reported as an event (see :func:`run_realtime`).
+  samples; every skip is counted and reported as an event (see :func:`run_realtime`). The gap is
+  counted from the sequence number; periods that passed by the host's clock beyond what the
+  sequence accounts for (a stall of 128 periods or more, where the 8-bit sequence number may have
+  wrapped) are counted from time and reported as a ``stall`` event. Sample log times never step
+  back (a re-anchor that would move them back holds them at the last one).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from dob_hil.errors import DriveFault
 from dob_hil.link.base import DriveLink
-from dob_hil.log import LogWriter
 from dob_hil.loop.cycle import ControlCycle
 
 SEQ_MODULO = 256
+
+
+def _fault_message(link: object, seq: int) -> str:
+    """The drive's fault, named by the link where it can (``fault_description``)."""
+    detail = getattr(link, "fault_description", None)
+    return f"the drive reports a fault (feedback seq {seq})" + (f": {detail}" if detail else "")
+
+
+TIMEOUT_HINT = (
+    "; on a busy machine widen --feedback-timeout-periods (drive.feedback_timeout_periods) and the "
+    "drive's watchdog (--watchdog-periods), or give the loop and the drive a CPU each"
+)
+
+
+class LoopLog(Protocol):
+    """What the runners write besides samples: events (``time_ns`` None: the run's clock now) and
+    the writer's flush (see :class:`dob_hil.loop.timeline.LoopLog`)."""
+
+    def event(
+        self, time_ns: int | None, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
+    ) -> None: ...
+
+    def flush(self, force: bool = False) -> None: ...
 
 
 class StopRequest(Protocol):
@@ -62,7 +88,7 @@ def run_lockstep(
     cycle: ControlCycle,
     link: DriveLink,
     drive: LockstepDrive,
-    log: LogWriter,
+    log: LoopLog,
     limits: LoopLimits,
     stop: StopRequest,
     progress: Callable[[int], None] | None = None,
@@ -94,7 +120,9 @@ def run_lockstep(
         if fb is None:
             missing_run += 1
             if missing_run >= limits.timeout_periods:
-                raise DriveFault(f"no feedback from the drive for {missing_run} periods (host timeout)")
+                raise DriveFault(
+                    f"no feedback from the drive for {missing_run} periods (host timeout){TIMEOUT_HINT}"
+                )
             answer = 0 if expected_seq is None else expected_seq
             on_missing(k, time_ns, answer, 0, False)
         else:
@@ -102,7 +130,7 @@ def run_lockstep(
                 _log_gap(log, k, missing_run)
                 missing_run = 0
             if fb.fault:
-                raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+                raise DriveFault(_fault_message(link, fb.seq))
             on_feedback(k, time_ns, fb, 0, False)
             expected_seq = fb.seq
         if expected_seq is not None:
@@ -115,10 +143,10 @@ def run_lockstep(
     return "completed"
 
 
-def _log_gap(log: LogWriter, k: int, count: int) -> None:
+def _log_gap(log: LoopLog, k: int, count: int) -> None:
     """Lockstep: the event for ``count`` samples before ``k`` that had no feedback."""
     log.event(
-        time.monotonic_ns(),
+        None,
         "warning",
         "feedback_lost",
         f"no feedback for {count} sample(s) before sample {k}",
@@ -126,10 +154,28 @@ def _log_gap(log: LogWriter, k: int, count: int) -> None:
     )
 
 
+def _unsequenced_periods(delta: int, since_ns: int, period_ns: int) -> tuple[int, int]:
+    """(gap, excess) for a feedback ``delta`` (mod 256, -128..127) sequence numbers from the
+    expected one that came ``since_ns`` after the previous sample's instant.
+
+    When the host's clock says that half the 8-bit range or more passed (a stall: the sequence
+    number may have wrapped), a negative ``delta`` is taken as ``delta + 256`` ahead (not stale),
+    and ``excess`` is the periods beyond what the sequence accounts for; else ``(delta, 0)``. The
+    excess is not filled as samples (a drive stalled as long as the host, both starved on one
+    machine, gives it too, and the sample index stays the drive's sequence): it is counted and
+    reported (``CycleStats.unsequenced_periods``, a ``stall`` event)."""
+    by_time = round(since_ns / period_ns) - 1  # periods passed beyond the expected one
+    if by_time < SEQ_MODULO // 2:
+        return delta, 0
+    gap = delta + SEQ_MODULO if delta < 0 else delta
+    excess = by_time - gap
+    return gap, excess if excess >= SEQ_MODULO // 2 else 0
+
+
 def run_realtime(
     cycle: ControlCycle,
     link: DriveLink,
-    log: LogWriter,
+    log: LoopLog,
     limits: LoopLimits,
     stop: StopRequest,
     first_feedback_timeout_ns: int = 2_000_000_000,
@@ -141,8 +187,9 @@ def run_realtime(
     The drive is the clock and its sequence number the sample index: the host never advances on
     its own clock, so a stall of either side never makes the two disagree about which sample is
     due. Each feedback is answered at once. If newer feedback is already queued when one is read
-    (the host fell behind), only the newest is answered (skip ahead, no burst of stale commands)
-    and the sample is flagged as an overrun. A sequence gap (frames lost, or skipped) is filled
+    late (more than half a period after its nominal instant: the host fell behind), only the
+    newest is answered (skip ahead, no burst of stale commands) and the sample is flagged as an
+    overrun. A sequence gap (frames lost, or skipped) is filled
     with :meth:`ControlCycle.on_lost` samples: the model is advanced over each with the input the
     drive held and no measurement, so it stays in step with the plant and the log has every
     sample. No feedback for ``timeout_periods`` periods ends the run (host timeout); the drive's
@@ -156,9 +203,16 @@ def run_realtime(
         raise DriveFault(
             f"no feedback from the drive within {first_feedback_timeout_ns / 1e9:g} s of enabling"
         )
+    while (newer := receive(0)) is not None:  # start from the newest feedback queued
+        fb = newer
+    if clock_ns() - fb.rx_time_ns > period_ns:
+        # an old one (kept from the enable handshake): the anchor needs a fresh reading
+        fb = receive(first_feedback_timeout_ns) or fb
     anchor_ns = fb.rx_time_ns
     expected_seq = fb.seq
     last_rx_ns = fb.rx_time_ns
+    last_log_ns = 0  # the samples' log time never steps back
+    half_period_ns = period_ns // 2
     k = 0
     while k < limits.n_samples:
         reason = stop.requested
@@ -172,16 +226,32 @@ def run_realtime(
                 if clock_ns() - last_rx_ns >= timeout_ns:
                     raise DriveFault(
                         f"no feedback from the drive for {limits.timeout_periods} periods "
-                        f"({timeout_ns / 1e6:g} ms: host timeout)"
+                        f"({timeout_ns / 1e6:g} ms: host timeout){TIMEOUT_HINT}"
                     )
                 continue
         if fb.fault:
-            raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+            raise DriveFault(_fault_message(link, fb.seq))
         last_rx_ns = fb.rx_time_ns
         overrun = False
-        while (newer := receive(0)) is not None:  # only when frames are already queued
-            fb, overrun = newer, True
-        delta = _seq_delta(fb.seq, expected_seq)
+        if fb.rx_time_ns - (anchor_ns + k * period_ns) > half_period_ns:
+            # read late: newer feedback may be queued (on time, none can have been sent yet, so
+            # the common case costs no extra receive)
+            while (newer := receive(0)) is not None:
+                fb, overrun = newer, True
+        # with the time count: how many periods after sample k - 1's nominal instant (on the
+        # drive's clock, as tracked by the anchor) this feedback came
+        since_ns = fb.rx_time_ns - (anchor_ns + (k - 1) * period_ns)
+        delta, excess = _unsequenced_periods(_seq_delta(fb.seq, expected_seq), since_ns, period_ns)
+        if excess:
+            cycle.stats.unsequenced_periods += excess
+            log.event(
+                clock_ns(),
+                "warning",
+                "stall",
+                f"{excess} period(s) before seq {fb.seq} passed beyond the {delta} its "
+                "sequence number accounts for (a stall of this host, or of both sides)",
+                {"sample": k, "count": excess},
+            )
         if delta < 0:  # older than expected: a duplicate or a reordered frame
             log.event(clock_ns(), "warning", "stale_feedback", f"feedback seq {fb.seq} is {-delta} behind")
             fb = None
@@ -198,7 +268,9 @@ def run_realtime(
             )
             cycle.stats.skipped += fill
             for _ in range(fill):
-                cycle.on_lost(k, anchor_ns + k * period_ns, expected_seq)
+                t = anchor_ns + k * period_ns
+                last_log_ns = t if t > last_log_ns else last_log_ns
+                cycle.on_lost(k, last_log_ns, expected_seq)
                 k += 1
                 expected_seq = (expected_seq + 1) % SEQ_MODULO
             if k >= limits.n_samples:
@@ -209,7 +281,8 @@ def run_realtime(
             anchor_ns += lateness_ns >> 6  # track the drive's clock (first order, 64 samples)
         else:
             anchor_ns = fb.rx_time_ns - k * period_ns  # the drive's clock jumped: re-anchor
-        cycle.on_feedback(k, instant_ns, fb, lateness_ns, overrun)
+        last_log_ns = instant_ns if instant_ns > last_log_ns else last_log_ns
+        cycle.on_feedback(k, last_log_ns, fb, lateness_ns, overrun)
         log.flush()
         k += 1
         expected_seq = (fb.seq + 1) % SEQ_MODULO

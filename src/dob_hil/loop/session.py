@@ -1,8 +1,9 @@
 """One run, from a config to a finalised log: build, enable, loop, and always stop safely.
 
-Whatever ends the run (completion, a drive fault, a host timeout, an exception, SIGINT or
-SIGTERM), the ``finally`` path commands zero current, disables the drive and finalises the log
-with a summary naming the exit reason.
+Whatever ends the run (completion, a drive fault, a host timeout, a safety-envelope trip, an
+exception, SIGINT or SIGTERM), the ``finally`` path commands zero current, disables the drive and
+finalises the log with a summary naming the exit reason. The signal handlers stay installed until
+the log is closed: a second SIGINT or SIGTERM while stopping is noted, not fatal.
 """
 
 from __future__ import annotations
@@ -34,8 +35,11 @@ from dob_hil.link.busload import refuse_overload
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
+from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
+from dob_hil.loop.inproc_bus import BUS_IMPLS, bus_pair
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
+from dob_hil.loop.timeline import LoopLog, frame_clamp
 from dob_hil.profiles import Clocking, DriveProfile, SimulatedCounterpart, get_profile
 
 _channel_counter = itertools.count()
@@ -56,6 +60,8 @@ class RunOptions:
     enable_timeout_s: float = 2.0
     # wraps the host's bus end (fault injection in tests: firmware_sim.faulty_bus.FaultyBus)
     bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None
+    # the embedded lockstep bus: "inprocess" (no copies) or python-can's "virtual"
+    bus_impl: str = "inprocess"
 
 
 @dataclass
@@ -75,6 +81,7 @@ class RunSummary:
     skipped_samples: int
     overruns: int
     max_abs_current_A: float
+    unsequenced_periods: int  # periods a stall hid from the sequence number, counted by time
     current_limit_A: float
     compute_ns_max: int
     log_dropped_records: int
@@ -87,16 +94,27 @@ class RunSummary:
 
 
 class _StopFlag:
-    """Set by SIGINT/SIGTERM; the loop checks it every sample. A second SIGINT raises at once."""
+    """Set by SIGINT/SIGTERM or a safety-envelope trip; the loop checks it every sample. A second
+    SIGINT while the loop runs raises at once (a loop stuck somewhere); once stopping, further
+    signals are only counted, so that the stop sequence and the log's close always finish."""
 
     def __init__(self) -> None:
         self.requested: str | None = None
+        self.stopping = False
+        self.ignored_signals = 0
+
+    def trip(self, reason: str) -> None:
+        if self.requested is None:
+            self.requested = reason
 
     def handler(self, signum: int, frame: types.FrameType | None) -> None:
         name = signal.Signals(signum).name
+        if self.stopping:
+            self.ignored_signals += 1
+            return
         if self.requested is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt
-        self.requested = name
+        self.trip(name)
 
 
 @contextmanager
@@ -114,12 +132,16 @@ def _signals(flag: _StopFlag) -> Iterator[None]:
             signal.signal(s, h)
 
 
-def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message, bool], None]:
+def _frame_stamper(
+    log: LogWriter, lockstep_drive: Any, loop_log: LoopLog
+) -> Callable[[can.Message, bool], None]:
     """Log frames on the samples' clock, so that frames and samples line up (in Foxglove too).
 
     Lockstep: the simulated drive's time (the sample instants are ``k * period_ns`` of it). Real
     time: the bus timestamp (python-can's ``time.time()`` base for most interfaces) moved onto
-    ``time.monotonic_ns`` by the offset between the two clocks taken at the start.
+    ``time.monotonic_ns`` by the offset between the two clocks taken at the start, kept
+    non-decreasing; the hook only queues the frame with its time, and the control thread packs
+    it at its next flush, after the command is sent (``LoopLog.defer_frames``).
     """
     frame_raw = log.frame_raw
 
@@ -143,12 +165,21 @@ def _frame_stamper(log: LogWriter, lockstep_drive: Any) -> Callable[[can.Message
 
         return stamp_lockstep
     offset_ns = time.monotonic_ns() - time.time_ns()
+    clamp = frame_clamp()  # non-decreasing: an own echo's bus time can precede the send's log time
+    pending: list[tuple[int, can.Message, bool]] = []
+    monotonic_ns = time.monotonic_ns
 
     def stamp_realtime(msg: can.Message, is_rx: bool) -> None:
-        aid, dlc, data, flags = parts(msg)
         ts = msg.timestamp
-        frame_raw(round(ts * 1e9) + offset_ns if ts else time.monotonic_ns(), aid, is_rx, dlc, data, flags)
+        pending.append((round(ts * 1e9) + offset_ns if ts else monotonic_ns(), msg, is_rx))
 
+    def write_pending() -> None:
+        for t, msg, is_rx in pending:
+            aid, dlc, data, flags = parts(msg)
+            frame_raw(clamp(t), aid, is_rx, dlc, data, flags)
+        pending.clear()
+
+    loop_log.defer_frames(pending, write_pending)
     return stamp_realtime
 
 
@@ -178,6 +209,9 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     duration_s = options.duration_s if options.duration_s is not None else config.run.duration_s
     if not duration_s > 0:
         raise DobHilError(f"--duration: must be > 0 s, got {duration_s}")
+    if options.bus_impl not in BUS_IMPLS:
+        raise DobHilError(f"--bus-impl: expected one of {', '.join(BUS_IMPLS)}, got {options.bus_impl!r}")
+    check_encoder_resolution(config, duration_s)
     period_ns = config.plant.period_ns
     n_samples = max(1, round(duration_s * 1e9 / period_ns))
     gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
@@ -210,14 +244,29 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
         missing_feedback_policy=config.run.missing_feedback_policy,
     )
     design_json = design.to_json()
-    with LogWriter(
-        log_path,
-        layout,
-        metadata={"run": run_meta, "versions": versions_metadata()},
-        attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
-    ) as log:
+    flag = _StopFlag()
+    with (
+        _signals(flag),
+        LogWriter(
+            log_path,
+            layout,
+            metadata={"run": run_meta, "versions": versions_metadata()},
+            attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
+        ) as log,
+    ):
         return _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
-                             n_samples, dob_enabled, external_bus)  # fmt: skip
+                             n_samples, dob_enabled, external_bus, flag)  # fmt: skip
+
+
+def _rt_settings(config: Config, options: RunOptions) -> RtSettings:
+    """``[run] sched_fifo``, ``cpu_affinity``, ``freeze_gc``, overridden by the command line's."""
+    rt, run = options.rt, config.run
+    return RtSettings(
+        sched_fifo=rt.sched_fifo or run.sched_fifo,
+        fifo_priority=rt.fifo_priority,
+        cpus=rt.cpus if rt.cpus else run.cpu_affinity,
+        freeze_gc=rt.freeze_gc or run.freeze_gc,
+    )
 
 
 def _run_with_log(
@@ -233,28 +282,46 @@ def _run_with_log(
     n_samples: int,
     dob_enabled: bool,
     external_bus: bool,
+    flag: _StopFlag,
 ) -> RunSummary:
     event_counts: dict[str, int] = {}
-
-    def on_event(ev: LinkEvent) -> None:
-        event_counts[ev.kind.value] = event_counts.get(ev.kind.value, 0) + 1
-        level = "error" if ev.kind.value in ("drive_fault", "send_failed") else "warning"
-        if ev.kind.value == "drive_state":
-            level = "info"
-        log.event(ev.time_ns, level, ev.kind.value, ev.message)
-
     drive_bus: can.BusABC | None = None
     drive: SimulatedCounterpart | None = None
+    loop_log = LoopLog(log, None)
     if external_bus:
         host_bus = open_bus(options.interface, options.channel, options.bitrate)
     else:
         channel = f"dob-hil-{os.getpid()}-{next(_channel_counter)}"
-        host_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        drive_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        drive = profile.make_sim(
-            drive_bus, config, "realtime" if options.realtime else "lockstep", _truth_sink(log)
-        )
-    frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None)
+        # lockstep: one thread, a bus without copies; the embedded real-time drive has threads
+        host_bus, drive_bus = bus_pair(channel, options.bus_impl if mode == "lockstep" else "virtual")
+        sink = _truth_sink(log) if mode == "lockstep" else loop_log.queue_truth
+        drive = profile.make_sim(drive_bus, config, "realtime" if options.realtime else "lockstep", sink)
+        if mode == "lockstep":
+            sim = drive
+
+            def sim_time_ns() -> int:
+                return sim.time_ns
+
+            loop_log = LoopLog(log, sim_time_ns)  # every channel on the simulated clock
+    envelope = Envelope(
+        config.safety,
+        C_rows=tuple(tuple(float(c) for c in row) for row in design.C),
+        period_ns=config.plant.period_ns,
+        default_max_velocity=encoder_jump_speed(config),
+        trip=flag.trip,
+    )
+
+    def on_event(ev: LinkEvent) -> None:
+        kind = ev.kind.value
+        event_counts[kind] = event_counts.get(kind, 0) + 1
+        level = "error" if kind in ("drive_fault", "send_failed") else "warning"
+        if kind == "drive_state":
+            level = "info"
+        loop_log.event(ev.time_ns, level, kind, ev.message)
+        if kind == "encoder_jump":
+            envelope.encoder_jump()
+
+    frame_hook = _frame_stamper(log, drive if mode == "lockstep" else None, loop_log)
     if options.bus_wrapper is not None:
         host_bus = options.bus_wrapper(host_bus)
     link = profile.make_link(host_bus, config, frame_hook, on_event)
@@ -267,14 +334,15 @@ def _run_with_log(
         missing_policy=config.run.missing_feedback_policy,
         max_missing_periods=config.run.max_missing_periods,
         C_rows=tuple(tuple(float(c) for c in row) for row in design.C),
+        sim_time=mode == "lockstep",
+        check=envelope.check,
     )
     limits = LoopLimits(n_samples, config.plant.period_ns, config.drive.feedback_timeout_periods)
-    flag = _StopFlag()
-    rt = options.rt
+    rt = _rt_settings(config, options)
     rt_report = apply_rt_settings(rt) if mode == "realtime" else None
     if rt_report is not None:
         for msg in rt_report.refused:
-            log.event(time.monotonic_ns(), "warning", "rt_setting_refused", msg)
+            loop_log.event(None, "warning", "rt_setting_refused", msg)
             print(f"dob-hil run: warning: {msg}", file=sys.stderr)
     progress = None
     if options.progress is not None:
@@ -287,35 +355,41 @@ def _run_with_log(
     switch_interval_s = sys.getswitchinterval()
     t_start = time.perf_counter()
     try:
-        with _signals(flag):
-            log.event(time.monotonic_ns(), "info", "run_start", f"{mode} run of {n_samples} samples")
-            if mode == "lockstep":
-                assert drive is not None
-                link.enable_lockstep(drive.service)
-                exit_reason = run_lockstep(cycle, link, drive, log, limits, flag, progress)
-            else:
-                if profile.clocking is not Clocking.DRIVE:
-                    raise DobHilError(f"the {profile.name} profile has no real-time runner yet")
-                if drive is not None:
-                    # the embedded drive's threads share this process's GIL with the loop: hand
-                    # it over every 100 us instead of 5 ms (timing stays indicative only; a drive
-                    # in its own process is the real-time setup)
-                    sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
-                    drive.start()
-                link.enable(int(options.enable_timeout_s * 1e9))
-                exit_reason = run_realtime(cycle, link, log, limits, flag, progress=progress)
+        loop_log.event(None, "info", "run_start", f"{mode} run of {n_samples} samples")
+        if mode == "lockstep":
+            assert drive is not None
+            link.enable_lockstep(drive.service)
+            exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
+        else:
+            if profile.clocking is not Clocking.DRIVE:
+                raise DobHilError(f"the {profile.name} profile has no real-time runner yet")
+            if drive is not None:
+                # the embedded drive's threads share this process's GIL with the loop: hand
+                # it over every 100 us instead of 5 ms (timing stays indicative only; a drive
+                # in its own process is the real-time setup)
+                sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
+                drive.start()
+            link.enable(int(options.enable_timeout_s * 1e9))
+            exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
+        if envelope.reason is not None and exit_reason == envelope.reason:
+            raise SafetyTrip(envelope.reason)
+    except SafetyTrip as exc:
+        exit_reason = str(exc)
+        loop_log.event(None, "error", "safety_trip", exit_reason)
+        raise
     except DriveFault as exc:
         exit_reason = f"drive fault: {exc}"
-        log.event(time.monotonic_ns(), "error", "run_aborted", str(exc))
+        loop_log.event(None, "error", "run_aborted", str(exc))
         raise
     except KeyboardInterrupt:
         exit_reason = "SIGINT"
         raise
     except BaseException as exc:
         exit_reason = f"exception: {type(exc).__name__}: {exc}"
-        log.event(time.monotonic_ns(), "error", "run_aborted", exit_reason)
+        loop_log.event(None, "error", "run_aborted", exit_reason)
         raise
     finally:
+        flag.stopping = True  # from here on a signal is noted, never fatal: stop and close finish
         wall_s = time.perf_counter() - t_start
         link.safe_stop()
         if drive is not None:
@@ -331,7 +405,7 @@ def _run_with_log(
             else:
                 drive.stop()
         if rt_report is not None:
-            restore_rt_settings(rt)
+            restore_rt_settings(rt, rt_report)
         sys.setswitchinterval(switch_interval_s)
         stats: CycleStats = cycle.stats
         summary = RunSummary(
@@ -349,6 +423,7 @@ def _run_with_log(
             missing_samples=stats.missing,
             skipped_samples=stats.skipped,
             overruns=stats.overruns,
+            unsequenced_periods=stats.unsequenced_periods,
             max_abs_current_A=stats.max_abs_applied_A,
             current_limit_A=config.drive.current_limit_A,
             compute_ns_max=stats.compute_ns_max,
@@ -357,10 +432,15 @@ def _run_with_log(
             rt_applied=rt_report.applied if rt_report else [],
             rt_refused=rt_report.refused if rt_report else [],
         )
-        log.event(time.monotonic_ns(), "info", "run_end", exit_reason)
+        loop_log.flush()  # the frames and truth still queued
+        if flag.ignored_signals:
+            note = f"{flag.ignored_signals} signal(s) while stopping: noted, the stop went on"
+            loop_log.event(None, "warning", "signal_while_stopping", note)
+        loop_log.event(None, "info", "run_end", exit_reason)
         link.close()
         if drive_bus is not None:
             drive_bus.shutdown()
+        loop_log.flush()  # the frames of the close
         log.close({k: json.dumps(v) if not isinstance(v, str) else v for k, v in summary.to_dict().items()})
         summary.log_dropped_records = log.stats.dropped_records
     return summary

@@ -10,10 +10,11 @@ time between the two frames' bus timestamps (``time.time()`` at receipt where th
 none). A frame lost on the bus shows as a gap of two periods, so the real-time runner fills it
 like a lost native feedback; frames read together after a stall of this process keep their bus
 timestamps and are spaced correctly. In lockstep (no wall clock, after :meth:`enable_lockstep`)
-every estimate is one more. An estimate stamped before the last one (reordered) or a repeat of
-the last one (same stamp and payload) is STALE_FEEDBACK and discarded.
-:meth:`send_sync` sends the RTR Get_Encoder_Estimates that a host-clocked loop would use as the
-cycle's trigger (the drive answers with the estimates sampled when it arrives).
+every estimate is one more, and the stamps are the simulated drive's. An estimate stamped before
+the last one (reordered) or a repeat of the last one (same stamp and payload) is STALE_FEEDBACK
+and discarded. With ``encoder_msg_rate_ms = 0`` (host-clocked) :meth:`send_sync` (alias
+``send_trigger``) sends the RTR Get_Encoder_Estimates that triggers each sample, and the answer
+gets the trigger's index as sequence number.
 
 Receiving. Estimates are checked (DLC 8, both floats finite, the position within an int32
 count: anything else is a MALFORMED_FRAME event and never reaches the controller) and quantized
@@ -307,8 +308,7 @@ class OdriveDriveLink:
         self._armed = False
         self._enable_attempt = True
         self._enable_seen = False
-        # [drive.odrive] clear_fault, or the common [drive] clear_fault / --clear-fault where present
-        if self._options.clear_fault or getattr(self._drive, "clear_fault", False):
+        if self._drive.clear_fault:  # [drive] clear_fault, or dob-hil run --clear-fault
             self._send(self._ids[CmdId.CLEAR_ERRORS], codec.encode_clear_errors(0), "Clear_Errors")
         self._send(
             self._ids[CmdId.SET_CONTROLLER_MODE],
@@ -479,7 +479,9 @@ class OdriveDriveLink:
             if self._seq is not None and (seq - self._seq) % SEQ_MODULO > 1:
                 self.stats.missed_feedback += (seq - self._seq) % SEQ_MODULO - 1
         else:
-            stamp_ns = round((msg.timestamp or time.time()) * 1e9)
+            # lockstep: the simulated drive's stamps (0.0 at t = 0); real time: the bus timestamp
+            stamp_s = msg.timestamp if self._lockstep else msg.timestamp or time.time()
+            stamp_ns = round(stamp_s * 1e9)
             last_seq = self._seq
             if last_seq is None:
                 seq = 0

@@ -14,10 +14,10 @@ encoder_msg_rate_ms              the drive's ``can.encoder_msg_rate_ms``: the cy
                                  (host-clocked; only where the profile is host-clocked)
 heartbeat_msg_rate_ms            the drive's ``can.heartbeat_msg_rate_ms`` (default 10):
                                  axis errors reach the host at this rate
-clear_fault                      send Clear_Errors before enabling (default false)
 firmware                         the firmware line the frames follow; only "0.6"
 ================================ ===========================================================
 
+``drive.clear_fault`` (``dob-hil run --clear-fault``) sends Clear_Errors before enabling.
 ``drive.watchdog_periods`` times the control period is the drive's watchdog timeout
 (``axis.config.watchdog_timeout``), and ``drive.current_limit_A`` its current limit.
 ``drive.encoder_counts_per_unit`` is in encoder counts (``encoder_cpr`` per turn) per plant
@@ -45,7 +45,6 @@ class OdriveOptions:
     encoder_cpr: int
     encoder_msg_rate_ms: int = 1
     heartbeat_msg_rate_ms: int = 10
-    clear_fault: bool = False
     firmware: str = "0.6"
 
 
@@ -58,7 +57,6 @@ def parse_options(s: ConfigSection) -> OdriveOptions:
         encoder_cpr=s.integer("encoder_cpr", low=1, high=1 << 24),
         encoder_msg_rate_ms=s.integer("encoder_msg_rate_ms", 1, low=0, high=60_000),
         heartbeat_msg_rate_ms=s.integer("heartbeat_msg_rate_ms", 10, low=MIN_MSG_RATE_MS, high=60_000),
-        clear_fault=s.boolean("clear_fault", False),
         firmware=s.string("firmware", "0.6", FIRMWARE_LINES),
     )
 
