@@ -145,7 +145,7 @@ class DriveCore:
         try:
             self.command_id = frame_id(FrameKind.COMMAND, drive.node_id)
         except ProtocolError as exc:
-            raise ConfigError("drive.node_id", str(exc)) from None
+            raise ConfigError("drive.node_id", str(exc).removeprefix("node_id: ")) from None
         self.control_id = frame_id(FrameKind.CONTROL, drive.node_id)
         self.period_ns = plant.period_ns
         self.delay_ns = plant.input_delay_samples * plant.period_ns

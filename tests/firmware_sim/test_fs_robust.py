@@ -53,9 +53,13 @@ def test_realtime_drive_stays_at_rest_until_enabled(bus_pair: tuple[can.BusABC, 
 
 def test_physics_overflow_is_an_encoder_fault_not_a_crash(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
     host_bus, drive_bus = bus_pair
-    base = make_config(sim={"disturbance": None, "initial_state": [1e10, 0.0]})
+    base = make_config(sim={"disturbance": None})
     # beyond what the config parser may accept: built directly, as a diverging plant gets there
-    config = dataclasses.replace(base, drive=dataclasses.replace(base.drive, encoder_counts_per_unit=1e300))
+    config = dataclasses.replace(
+        base,
+        drive=dataclasses.replace(base.drive, encoder_counts_per_unit=1e300),
+        sim=dataclasses.replace(base.sim, initial_state=(1e10, 0.0)),
+    )
     host = Host(host_bus)
     drive = SimulatedDrive(drive_bus, config)
     host.control(ControlRequest.ENABLE)

@@ -250,7 +250,7 @@ class NativeDriveLink:
         try:
             self._feedback_id = frame_id(FrameKind.FEEDBACK, node)
         except ProtocolError as exc:
-            raise ConfigError("drive.node_id", str(exc)) from None
+            raise ConfigError("drive.node_id", str(exc).removeprefix("node_id: ")) from None
         self._fault_id = frame_id(FrameKind.FAULT, node)
         self._heartbeat_id = frame_id(FrameKind.HEARTBEAT, node)
         self._command_id = frame_id(FrameKind.COMMAND, node)
