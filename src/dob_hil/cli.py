@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from importlib import import_module
 
@@ -59,6 +60,11 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
         p.add_argument("--out", help="output folder for the design file and plots")
         p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+        p.add_argument(
+            "--optimize",
+            action="store_true",
+            help="choose Kdist (tune = all: Lc, Kc too) for the best rejection per [design.optimize]",
+        )
     elif name == "run":
         p.add_argument("config", nargs="?", help="TOML config file")
         p.add_argument("--scenario", help="a shipped scenario: paper-step or paper-sine")
@@ -185,6 +191,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "_module", None):
         parser.print_help()
         return 2
+    command = args.command
+    # Warnings (e.g. a design violating a robustness bound) as one line each, like errors.
+    warnings.formatwarning = lambda message, *_a, **_k: f"dob-hil {command}: warning: {message}\n"
     try:
         module = import_module(args._module)
         run: Callable[[argparse.Namespace], int] = module.main

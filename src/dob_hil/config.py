@@ -85,6 +85,7 @@ class FeedbackConfig:
     q: float | None = None
     R2: Matrix | None = None
     ltr_q_values: tuple[float, ...] | None = None
+    ltr_band_hz: tuple[float, float] | None = None  # LTR error band; default up to 2x Gtl's crossover
 
 
 @dataclass(frozen=True)
@@ -97,10 +98,30 @@ class DobConfig:
 
 
 @dataclass(frozen=True)
+class OptimizeConfig:
+    """``[design.optimize]``: the band and bounds of the ``optimize`` DOB design (dob_hil.design.optimize).
+    ``band_hz`` defaults to the span of the sine disturbances in [sim]; ``max_peak_T`` and
+    ``max_noise_rms_A`` to the starting design's own values; ``None`` bounds are not imposed."""
+
+    band_hz: tuple[float, float] | None = None
+    tune: str = "kdist"
+    max_peak_S: float = 2.0
+    max_peak_T: float | None = None
+    max_noise_rms_A: float | None = None
+    max_noise_peak_A: float | None = None
+    min_gain_margin_dB: float = 6.0
+    min_phase_margin_deg: float = 30.0
+    min_disk_gain_margin_dB: float | None = None
+    min_disk_phase_margin_deg: float | None = None
+    min_delay_margin_samples: float = 1.0
+
+
+@dataclass(frozen=True)
 class DesignConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     dob: DobConfig = field(default_factory=DobConfig)
+    optimize: OptimizeConfig = field(default_factory=OptimizeConfig)
 
 
 @dataclass(frozen=True)
@@ -363,6 +384,7 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
         q=f.get("q"),
         R2=_gain(f, "R2", (m, m), f"inputs x inputs: {m} inputs"),
         ltr_q_values=f.get("ltr_q_values"),
+        ltr_band_hz=_band_hz(f, "ltr_band_hz"),
     )
     if fb.Kc is not None and (fb.q is not None or fb.R2 is not None):
         raise ConfigError(f.name("Kc"), "give either Kc or the LTR weights q/R2, not both")
@@ -376,8 +398,34 @@ def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
     if dob.Kdist is not None and dob.method is not None:
         raise ConfigError(d.name("Kdist"), "give either Kdist or a design method, not both")
     d.finish()
+    opt = _parse_optimize(s.sub("optimize"))
     s.finish()
-    return DesignConfig(est, fb, dob)
+    return DesignConfig(est, fb, dob, opt)
+
+
+def _band_hz(s: _Section, key: str) -> tuple[float, float] | None:
+    band: tuple[float, ...] | None = s.get(key)
+    if band is not None and (len(band) != 2 or band[0] > band[1]):
+        raise ConfigError(s.name(key), f"must be [lo, hi] in Hz with lo <= hi, got {list(band)}")
+    return (band[0], band[1]) if band is not None else None
+
+
+def _parse_optimize(o: _Section) -> OptimizeConfig:
+    cfg = OptimizeConfig(
+        band_hz=_band_hz(o, "band_hz"),
+        tune=o.get("tune"),
+        max_peak_S=o.get("max_peak_S"),
+        max_peak_T=o.get("max_peak_T"),
+        max_noise_rms_A=o.get("max_noise_rms_A"),
+        max_noise_peak_A=o.get("max_noise_peak_A"),
+        min_gain_margin_dB=o.get("min_gain_margin_dB"),
+        min_phase_margin_deg=o.get("min_phase_margin_deg"),
+        min_disk_gain_margin_dB=o.get("min_disk_gain_margin_dB"),
+        min_disk_phase_margin_deg=o.get("min_disk_phase_margin_deg"),
+        min_delay_margin_samples=o.get("min_delay_margin_samples"),
+    )
+    o.finish()
+    return cfg
 
 
 def _parse_drive(s: _Section) -> DriveConfig:

@@ -33,6 +33,7 @@ REQUIRED = "<required>"  # the default of a field that must be given
 MISSING_FEEDBACK_POLICIES = ("hold", "extrapolate", "zero")
 REFERENCE_KINDS = ("step", "sine", "csv")
 DISTURBANCE_KINDS = ("sine", "step", "noise")
+OPTIMIZE_TUNES = ("kdist", "all")
 
 
 @dataclass(frozen=True)
@@ -157,19 +158,55 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "estimator loop's robustness.", low=0.0, low_open=True, high=_M, default="1"),
         _f("R2", "matrix", "Input weight of the LTR DARE; larger: gentler commands.", shape="m x m",
            high=_M, default="identity"),
-        _f("ltr_q_values", "numbers", "q values of the LTR table and plot of `dob-hil design`.",
+        _f("ltr_q_values", "numbers", "q values of the LTR table and plot of `dob-hil design`; "
+           "extended by decades until the loop recovers the target in `ltr_band_hz`.",
            low=0.0, low_open=True, high=_M, example="[1.0, 100.0, 1.0e4, 1.0e6]"),
+        _f("ltr_band_hz", "numbers", "[lo, hi]: the band in which the LTR error is measured.",
+           unit="Hz", low=0.0, low_open=True, high=1e9,
+           default="lowest plotted frequency to twice the target loop's crossover",
+           example="[0.1, 200.0]"),
     )),
     SectionSpec("design.dob", "The disturbance observer gain: give `Kdist`, or leave it out and "
                 "`method` designs it.", (
         _f("Kdist", "matrix", "Disturbance observer gain.", shape="m x n_aug", high=_M,
            example="[[18.0, 3.75]]"),
         _f("method", "string", "Design method of Kdist: `dc_loop_gain` (DOB loop DC gain = "
-           "`gain`, default 1; the default method), `stable_fraction` (`gain` in (0, 1) of the "
-           "stable range, default 0.5) or `min_radius` (the fastest estimate, no gain).",
-           default=""),
+           "`gain`, default 1, i.e. 50 % of a constant disturbance estimated; the default method), "
+           "`dc_estimate` (estimates the fraction `gain` of a constant disturbance, default 0.8), "
+           "`stable_fraction` (`gain` in (0, 1) of the stable range, default 0.25), `min_radius` "
+           "(the fastest estimate among gains estimating at least `gain` of a constant "
+           "disturbance, default 0.5) or `optimize` (best rejection within the bounds of "
+           "[design.optimize]).", default=""),
         _f("gain", "number", "Parameter of the design method.", low=0.0, low_open=True, high=_M,
            default="per method"),
+    )),
+    SectionSpec("design.optimize", "The `optimize` DOB design (`design.dob.method = \"optimize\"` "
+                "or `dob-hil design --optimize`): the best worst-case disturbance rejection over "
+                "`band_hz` subject to the bounds below.", (
+        _f("band_hz", "numbers", "[lo, hi]: the band whose worst rejection |y/w| is minimised.",
+           unit="Hz", low=0.0, low_open=True, high=1e9,
+           default="the span of the sine disturbances in [sim]", example="[4.0, 12.0]"),
+        _f("tune", "string", "What is chosen: `kdist` (Kdist only) or `all` (Lc, Kc and Kdist, "
+           "directly, starting from the config's gains).", default="kdist",
+           choices=OPTIMIZE_TUNES),
+        _f("max_peak_S", "number", "Bound on peak |S| (sigma_max) at the plant output.",
+           default=2.0, low=1.0, high=1e3),
+        _f("max_peak_T", "number", "Bound on peak |T| at the plant output.", low=0.0,
+           low_open=True, high=1e3, default="the starting design's"),
+        _f("max_noise_rms_A", "number", "Bound on the RMS current from white encoder noise of one "
+           "count RMS.", unit="A", low=0.0, low_open=True, high=1e6, default="the starting design's"),
+        _f("max_noise_peak_A", "number", "Bound on the current from one count of encoder noise at "
+           "the worst frequency.", unit="A", low=0.0, low_open=True, high=1e6, default="none"),
+        _f("min_gain_margin_dB", "number", "Bound on the gain margin (loop at a time, plant input).",
+           unit="dB", default=6.0, low=0.0, high=200.0),
+        _f("min_phase_margin_deg", "number", "Bound on the phase margin (loop at a time, plant "
+           "input).", unit="deg", default=30.0, low=0.0, high=180.0),
+        _f("min_disk_gain_margin_dB", "number", "Bound on the balanced disk gain margin.",
+           unit="dB", low=0.0, low_open=True, high=200.0, default="none"),
+        _f("min_disk_phase_margin_deg", "number", "Bound on the balanced disk phase margin.",
+           unit="deg", low=0.0, low_open=True, high=90.0, default="none"),
+        _f("min_delay_margin_samples", "number", "Bound on the delay margin.", unit="samples",
+           default=1.0, low=0.0, high=1e6),
     )),
     SectionSpec("drive", "The drive and its wire format. `[drive.<profile>]` holds the profile's "
                 "own options, if it has any.", (

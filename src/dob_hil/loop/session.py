@@ -28,6 +28,7 @@ from dob_hil.config import Config
 from dob_hil.control.reference import make_reference
 from dob_hil.control.step import Gains, compile_step
 from dob_hil.design import Design, build_design
+from dob_hil.design.tracking import tracking_map
 from dob_hil.errors import DobHilError, DriveFault
 from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
@@ -214,9 +215,12 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     check_encoder_resolution(config, duration_s)
     period_ns = config.plant.period_ns
     n_samples = max(1, round(duration_s * 1e9 / period_ns))
-    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
+    tracking = tracking_map(design)  # x_ref = Nx r + Nv r', u_ref = Kff x_ref (any plant)
+    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist, Kff=tracking.Kff)
     step = compile_step(gains, dob_enabled)
-    reference = make_reference(config.reference, step.n_states, config.plant.period_s)
+    reference = make_reference(
+        config.reference, step.n_states, config.plant.period_s, state_map=(tracking.Nx, tracking.Nv)
+    )
     external_bus = options.interface is not None or options.channel is not None
     mode = "realtime" if (external_bus or options.realtime) else "lockstep"
     log_path = options.log_path or default_log_path(config, dob_enabled)
