@@ -470,35 +470,33 @@ class OdriveDriveLink:
                 now_ns, msg, f"encoder estimate {pos_turns!r} turns is beyond the int32 count range"
             )
             return
-        if self._rtr_mode:
+        # lockstep: the simulated drive's stamps (0.0 at t = 0); real time: the bus timestamp
+        stamp_s = msg.timestamp if self._lockstep else msg.timestamp or time.time()
+        stamp_ns = round(stamp_s * 1e9)
+        last_seq = self._seq
+        if last_seq is not None:
+            gap_ns = stamp_ns - self._last_stamp_ns
+            if gap_ns < 0 or (gap_ns == 0 and bytes(data) == self._last_data):
+                what = "a duplicate" if gap_ns == 0 else f"{-gap_ns / 1e6:.3f} ms older than the last"
+                self._stale(now_ns, what)
+                return
+        if self._rtr_mode:  # the answer to the last trigger, numbered by it
             if self._answered or self._triggers == 0:
                 self._stale(now_ns, "not asked for (no RTR outstanding)")
                 return
             self._answered = True
             seq = (self._triggers - 1) % SEQ_MODULO
-            if self._seq is not None and (seq - self._seq) % SEQ_MODULO > 1:
-                self.stats.missed_feedback += (seq - self._seq) % SEQ_MODULO - 1
-        else:
-            # lockstep: the simulated drive's stamps (0.0 at t = 0); real time: the bus timestamp
-            stamp_s = msg.timestamp if self._lockstep else msg.timestamp or time.time()
-            stamp_ns = round(stamp_s * 1e9)
-            last_seq = self._seq
-            if last_seq is None:
-                seq = 0
-            else:
-                gap_ns = stamp_ns - self._last_stamp_ns
-                if gap_ns < 0 or (gap_ns == 0 and bytes(data) == self._last_data):
-                    self._stale(
-                        now_ns,
-                        "a duplicate" if gap_ns == 0 else f"{-gap_ns / 1e6:.3f} ms older than the last",
-                    )
-                    return
-                step = 1 if self._lockstep else max(1, round(gap_ns / self._period_ns))
-                if step > 1:
-                    self.stats.missed_feedback += step - 1
-                seq = (last_seq + step) % SEQ_MODULO
-            self._last_stamp_ns = stamp_ns
-            self._last_data = bytes(data)
+            if last_seq is not None and (seq - last_seq) % SEQ_MODULO > 1:
+                self.stats.missed_feedback += (seq - last_seq) % SEQ_MODULO - 1
+        elif last_seq is None:
+            seq = 0
+        else:  # cyclic: numbered by the time since the last one
+            step = 1 if self._lockstep else max(1, round(gap_ns / self._period_ns))
+            if step > 1:
+                self.stats.missed_feedback += step - 1
+            seq = (last_seq + step) % SEQ_MODULO
+        self._last_stamp_ns = stamp_ns
+        self._last_data = bytes(data)
         self._seq = seq
         hb = self._heartbeat
         enabled = hb is not None and hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0
