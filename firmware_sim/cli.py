@@ -31,6 +31,7 @@ from dob_hil.config import Config, load_config
 from dob_hil.errors import ConfigError, DobHilError
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.behaviour import VARIANTS
+from firmware_sim.cia402 import SimulatedCia402Drive
 from firmware_sim.drive import SimulatedDrive
 from firmware_sim.odrive import SimulatedOdrive
 from firmware_sim.plant import check_single_axis
@@ -157,9 +158,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         for refused in rt.refused:
             print(f"{PROG}: warning: {refused}", file=sys.stderr, flush=True)
         spin_ns = _spin_ns(args, rt.applied)
+        drive: SimulatedDrive | SimulatedCia402Drive | SimulatedOdrive
         try:
-            drive: SimulatedDrive | SimulatedOdrive
-            if config.drive.profile == "odrive":  # the simulated ODrive (CANSimple)
+            if config.drive.profile == "cia402":  # the host's SYNC is this drive's clock: no timer to spin
+                drive = SimulatedCia402Drive(bus, config, clock="realtime", truth_sink=sink)
+            elif config.drive.profile == "odrive":  # the simulated ODrive (CANSimple)
                 drive = SimulatedOdrive(bus, config, clock="realtime", truth_sink=sink, spin_ns=spin_ns)
             else:
                 drive = SimulatedDrive(
@@ -189,14 +192,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 drive.check()
         finally:
             drive.close()
-        stats = drive.stats
-        print(
-            f"{PROG}: stopped after {stats.samples} samples "
-            f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
-            f"{stats.commands_accepted} commands, {stats.overruns} overruns, "
-            f"{stats.rx_errors} undeliverable frames, final state {drive.state.name})",
-            file=sys.stderr,
-        )
+        if isinstance(drive, SimulatedCia402Drive):
+            print(f"{PROG}: stopped: {drive.stats}", file=sys.stderr)
+        else:
+            stats = drive.stats
+            print(
+                f"{PROG}: stopped after {stats.samples} samples "
+                f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
+                f"{stats.commands_accepted} commands, {stats.overruns} overruns, "
+                f"{stats.rx_errors} undeliverable frames, final state {drive.state.name})",
+                file=sys.stderr,
+            )
     except DobHilError as exc:
         status = _fail(2, str(exc))
     except KeyboardInterrupt:

@@ -79,7 +79,7 @@ _DELETE = object()
         ("drive.current_limit_A", 100.0, "drive.current_limit_A", "int16"),
         ("drive.node_id", 200, "drive.node_id", "<= 127"),
         ("drive.encoder_bits", 40, "drive.encoder_bits", "<= 32"),
-        ("drive.profile", "cia402", "drive.profile", "one of"),
+        ("drive.profile", "canopen-ish", "drive.profile", "one of"),
         ("sim.substeps", 0, "sim.substeps", ">= 1"),
         ("sim.loss_probability", 1.0, "sim.loss_probability", "< 1"),
         ("reference.kind", "ramp", "reference.kind", "one of"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,13 @@ def write_design_outputs(
 
     profile = get_profile(config.drive.profile)
     profile.check_period(config.plant.period_ns)
+    if profile.input_delay_samples > config.plant.input_delay_samples:
+        print(
+            f"dob-hil design: warning: the {profile.name} profile adds {profile.input_delay_samples} "
+            f"sample(s) of input delay, but plant.input_delay_samples = {config.plant.input_delay_samples} "
+            "does not model it",
+            file=sys.stderr,
+        )
     load = refuse_overload(profile.bus_load(config))  # refuses a load above 100 %
     with warnings.catch_warnings():  # the report lists them (WARNINGS)
         warnings.simplefilter("ignore", DesignWarning)
