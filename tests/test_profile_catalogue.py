@@ -29,9 +29,10 @@ def test_profiles_json_for_a_config(capsys: pytest.CaptureFixture[str]) -> None:
     entries = {e["name"]: e for e in json.loads(capsys.readouterr().out)["profiles"]}
     assert set(entries) == {p.name for p in all_profiles()}
     odrive = entries["odrive"]
-    assert odrive["min_period_ns"] == 1_000_000 and odrive["clocking"] == "drive"
-    # 2 x 8-byte frames per 1 ms + a heartbeat every 10 ms, worst-case stuffing: 2 x 135 + 13.5 bit
-    assert odrive["config"]["bus_load_percent"] == pytest.approx(28.35, abs=0.01)
+    assert odrive["min_period_ns"] == 1_000_000 and odrive["clocking"] == "host"
+    # RTR (55 bit) + 2 x 8-byte frames (135 bit) per 1 ms + a heartbeat every 10 ms (13.5 bit),
+    # worst-case stuffing
+    assert odrive["config"]["bus_load_percent"] == pytest.approx(33.85, abs=0.01)
     assert odrive["config"]["period_ok"] is True
     assert entries["native"]["config"]["period_ok"] is True
 

@@ -47,6 +47,7 @@ class OdriveLockstep:
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
         self._awaiting = False  # estimates went out; the next torque input closes the period
         self._sampled_at = -1  # the instant the last estimates were taken at
+        self._truth_at = -1  # the instant of the last ground-truth record
 
     def service(self) -> int:
         recv, core = self.bus.recv, self.core
@@ -89,6 +90,10 @@ class OdriveLockstep:
         self._send_outgoing()
         if sample:
             self._send_estimates()
+        elif self.truth_sink is not None and self.core.want_truth:
+            truth = self.core.truth()  # the log's truth channel follows the drive's clock
+            self._truth_at = self.core.time_ns
+            self.truth_sink(truth)
 
     def advance_period(self) -> None:
         """One period without a torque input; the estimates follow if they are cyclic."""
@@ -103,7 +108,8 @@ class OdriveLockstep:
             self.core.stats.feedback_lost += 1
         elif self._send(self.core.estimates_id, payload):
             self.core.stats.feedback_sent += 1
-        if truth is not None and self.truth_sink is not None:
+        if truth is not None and self.truth_sink is not None and self._truth_at != self.core.time_ns:
+            self._truth_at = self.core.time_ns
             self.truth_sink(truth)
 
     def _send_outgoing(self) -> None:

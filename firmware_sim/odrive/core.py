@@ -274,11 +274,19 @@ class OdriveCore:
             payload = _ESTIMATES.pack(math.nan, math.nan)
         if not self.want_truth:
             return payload, None
+        return payload, self.truth()
+
+    def truth(self) -> GroundTruth:
+        """The ground truth at :attr:`time_ns` (never on the bus)."""
         t = self.time_ns
-        truth = GroundTruth(
-            t // self.period_ns, t, x, self.disturbance.value_A(t * 1e-9), self.path.held_A, self.drive_state
+        return GroundTruth(
+            t // self.period_ns,
+            t,
+            self.plant.state,
+            self.disturbance.value_A(t * 1e-9),
+            self.path.held_A,
+            self.drive_state,
         )
-        return payload, truth
 
 
 class StartAtEnable:

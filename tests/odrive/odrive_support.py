@@ -25,9 +25,13 @@ _channels = itertools.count()
 
 
 def odrive_text(*, drive: dict[str, Any] | None = None, odrive: dict[str, Any] | None = None,
-                extra: str = "") -> str:  # fmt: skip
-    """paper-step-odrive's TOML with ``[drive]`` and ``[drive.odrive]`` keys replaced (or added)."""
+                extra: str = "", cyclic: bool = False) -> str:  # fmt: skip
+    """paper-step-odrive's TOML with ``[drive]`` and ``[drive.odrive]`` keys replaced (or added);
+    ``cyclic``: the drive-clocked variant (cyclic estimates every period) for the link's and the
+    simulated drive's own tests (the shipped, host-clocked profile refuses it)."""
     text = scenario_path("paper-step-odrive").read_text()
+    if cyclic:
+        odrive = {"encoder_msg_rate_ms": 1, **(odrive or {})}
     for table, changes in (("[drive]", drive or {}), ("[drive.odrive]", odrive or {})):
         head, sep, tail = text.partition(f"\n{table}\n")
         body, nxt, rest = tail.partition("\n[")
@@ -40,6 +44,7 @@ def odrive_text(*, drive: dict[str, Any] | None = None, odrive: dict[str, Any] |
 
 
 def odrive_config(tmp_path: Path, name: str = "odrive", **kw: Any) -> Config:
+    """See :func:`odrive_text`."""
     path = tmp_path / f"{name}.toml"
     path.write_text(odrive_text(**kw))
     return load_config(path)

@@ -2,7 +2,7 @@
 ``encoder_msg_rate_ms = 0`` the drive sends no cyclic estimates, the host's RTR
 Get_Encoder_Estimates (``send_sync()`` / ``send_trigger()``) is each sample's trigger and its
 index the sequence number; the lockstep drive advances one period per trigger. The shipped
-profile is still drive-clocked: its descriptor refuses rate 0, naming the setting."""
+profile is host-clocked: its descriptor refuses cyclic estimates, naming the setting."""
 
 from __future__ import annotations
 
@@ -63,11 +63,11 @@ def test_unasked_estimates_are_stale_in_rtr_mode(tmp_path: Path) -> None:
         rig.close()
 
 
-def test_drive_clocked_profile_refuses_rate_zero(tmp_path: Path) -> None:
+def test_each_clocking_refuses_the_others_rate(tmp_path: Path) -> None:
     config = rtr_config(tmp_path)
     with pytest.raises(
         ConfigError, match=r"encoder_msg_rate_ms: 0 \(RTR-triggered estimates\) needs a host-clocked"
     ):
         odrive_options(config, host_clocked=False)
     with pytest.raises(ConfigError, match=r"encoder_msg_rate_ms: 1 ms: the host's RTR triggers each sample"):
-        odrive_options(odrive_config(tmp_path, name="cyclic"), host_clocked=True)
+        odrive_options(odrive_config(tmp_path, name="cyclic", cyclic=True), host_clocked=True)

@@ -26,7 +26,7 @@ KT = 0.0827  # paper-step-odrive's torque constant
 
 @pytest.fixture
 def config(tmp_path: Path) -> Config:
-    return odrive_config(tmp_path)
+    return odrive_config(tmp_path, cyclic=True)
 
 
 @pytest.fixture
@@ -87,12 +87,12 @@ def test_nonfinite_current_sends_zero_and_an_event(rig: Rig) -> None:
 @pytest.mark.parametrize("kt", [0.0, -1.0])
 def test_torque_constant_must_be_positive(tmp_path: Path, kt: float) -> None:
     with pytest.raises(ConfigError, match=r"drive\.odrive\.torque_constant_Nm_per_A: must be > 0"):
-        odrive_config(tmp_path, odrive={"torque_constant_Nm_per_A": kt})
+        odrive_config(tmp_path, cyclic=True, odrive={"torque_constant_Nm_per_A": kt})
 
 
 def test_torque_constant_must_be_finite(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="torque_constant_Nm_per_A: must be finite"):
-        odrive_config(tmp_path, odrive={"torque_constant_Nm_per_A": math.inf})
+        odrive_config(tmp_path, cyclic=True, odrive={"torque_constant_Nm_per_A": math.inf})
 
 
 def test_encoder_rate_must_be_the_control_period(tmp_path: Path) -> None:
@@ -101,7 +101,7 @@ def test_encoder_rate_must_be_the_control_period(tmp_path: Path) -> None:
     with pytest.raises(
         ConfigError, match=r"encoder_msg_rate_ms: 2 ms must equal the control period \(1 ms\)"
     ):
-        odrive_options(odrive_config(tmp_path, odrive={"encoder_msg_rate_ms": 2}))
+        odrive_options(odrive_config(tmp_path, cyclic=True, odrive={"encoder_msg_rate_ms": 2}))
 
 
 # --- receiving ------------------------------------------------------------------------------------
@@ -185,7 +185,7 @@ def test_duplicates_and_reordered_estimates_are_stale(rig: Rig) -> None:
 
 # --- enable, errors, stop -------------------------------------------------------------------------
 def test_enable_sequence_and_safe_stop_frames(tmp_path: Path) -> None:
-    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": True}))
+    rig = make_rig(odrive_config(tmp_path, cyclic=True, drive={"clear_fault": True}))
     try:
         rig.link.enable_lockstep(rig.drive.service)
         assert rig.drive.enabled
@@ -241,6 +241,6 @@ def test_axis_error_in_a_heartbeat_ends_the_run_with_its_name(rig: Rig) -> None:
 
 
 def test_node_id_beyond_63_is_refused(tmp_path: Path) -> None:
-    config = odrive_config(tmp_path, drive={"node_id": 64})
+    config = odrive_config(tmp_path, cyclic=True, drive={"node_id": 64})
     with pytest.raises(ConfigError, match=r"drive\.node_id: ODrive node id must be 0\.\.63"):
         make_rig(config)

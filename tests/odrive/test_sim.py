@@ -22,7 +22,7 @@ WATCHDOG = 10  # paper-step-odrive's watchdog_periods
 
 @pytest.fixture
 def rig(tmp_path: Path) -> Iterator[Rig]:
-    r = make_rig(odrive_config(tmp_path))
+    r = make_rig(odrive_config(tmp_path, cyclic=True))
     yield r
     r.close()
 
@@ -122,14 +122,14 @@ def test_closed_loop_refused_with_an_active_error_until_clear_errors(rig: Rig) -
 
 
 def test_link_clear_fault_recovers_a_drive_with_errors(tmp_path: Path) -> None:
-    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": True}))
+    rig = make_rig(odrive_config(tmp_path, cyclic=True, drive={"clear_fault": True}))
     try:
         core(rig).set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, 0)
         rig.link.enable_lockstep(rig.drive.service)
         assert rig.drive.enabled
     finally:
         rig.close()
-    rig = make_rig(odrive_config(tmp_path, drive={"clear_fault": False}))
+    rig = make_rig(odrive_config(tmp_path, cyclic=True, drive={"clear_fault": False}))
     try:
         core(rig).set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, 0)
         with pytest.raises(DriveFault, match="WATCHDOG_TIMER_EXPIRED"):
@@ -171,7 +171,7 @@ def test_undecodable_frames_are_ignored(rig: Rig) -> None:
 
 
 def test_injected_drive_fault_sets_drv_fault(tmp_path: Path) -> None:
-    config = odrive_config(tmp_path, extra="\n[sim.faults]\nfault_at_s = 0.005\n")
+    config = odrive_config(tmp_path, cyclic=True, extra="\n[sim.faults]\nfault_at_s = 0.005\n")
     bus = can.Bus(interface="virtual", channel="he-odrive-fault", receive_own_messages=False)
     host = can.Bus(interface="virtual", channel="he-odrive-fault", receive_own_messages=False)
     try:

@@ -26,7 +26,9 @@ _channels = itertools.count()
 
 @pytest.fixture
 def pair(tmp_path: Path) -> Iterator[tuple[OdriveDriveLink, SimulatedOdrive, can.BusABC]]:
-    config = odrive_config(tmp_path, drive={"watchdog_periods": 50, "feedback_timeout_periods": 500})
+    config = odrive_config(
+        tmp_path, cyclic=True, drive={"watchdog_periods": 50, "feedback_timeout_periods": 500}
+    )
     channel = f"he-odrive-rt-{next(_channels)}"
     host_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     drive_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)

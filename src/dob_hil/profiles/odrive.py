@@ -1,21 +1,18 @@
-"""The ODrive CANSimple profile (firmware 0.6.x): torque control, drive-clocked encoder estimates.
+"""The ODrive CANSimple profile (firmware 0.6.x): torque control, host-clocked by RTR.
 
-Clocking: ODrive has no SYNC. The drive sends Get_Encoder_Estimates every
-``encoder_msg_rate_ms`` (set to the control period) and the host answers each with
-Set_Input_Torque, which the drive applies when it arrives. ODrive's cyclic messages are configured
-in whole milliseconds, so the period is 1 ms at least and a whole number of milliseconds.
+Clocking: ODrive has no SYNC. The host is the clock (``dob_hil.loop.host_clocked``): at each
+absolute deadline it sends a remote request (RTR) for Get_Encoder_Estimates (``send_trigger()``),
+the drive answers with the estimates sampled when the request arrives, the host runs the step and
+sends Set_Input_Torque, which the drive applies when it arrives. The drive's cyclic estimates are
+off (``encoder_msg_rate_ms = 0``). The link and the simulated drive also serve the drive-clocked
+variant (cyclic estimates every period, sequence numbers from arrival times), used by their own
+tests. ODrive's message rates are whole milliseconds, and the request, the answer and the command
+must fit in a period: the profile serves 1 ms and up.
 
-Host-clocked, the preferred clocking (no drift between two clocks, the host's deadlines are the
-sample instants), is implemented in the link and the simulated drive and tested in lockstep:
-``encoder_msg_rate_ms = 0`` turns the cyclic estimates off and the host's RTR
-Get_Encoder_Estimates (``send_trigger()``) becomes each sample's trigger, answered with the
-estimates sampled on its arrival. The profile switches to it with ``clocking=Clocking.HOST``
-(and ``encoder_msg_rate_ms = 0`` in the scenario) once the host-clocked runner is in main.
-
-Input delay: either way the torque acts from its arrival, a fraction of a period after the
-estimates were sampled (bus time of the frames, about 0.27 ms at 1 Mbit/s worst case for the two
-8-byte frames, plus the host's turnaround), exactly as with the native profile: no whole sample
-of delay, so ``input_delay_samples = 0``; the fraction is unmodelled, as for the native profile.
+Input delay: the torque acts from its arrival, a fraction of a period after the estimates were
+sampled (bus time of the RTR, the 8-byte answer and the 8-byte command, about 0.33 ms at 1 Mbit/s
+worst case, plus the host's turnaround), exactly as with the native profile: no whole sample of
+delay, so ``input_delay_samples = 0``; the fraction is unmodelled, as for the native profile.
 """
 
 from __future__ import annotations
@@ -81,8 +78,8 @@ def _bus_load(config: Config) -> BusLoad:
 
 PROFILE = DriveProfile(
     name="odrive",
-    summary="ODrive CANSimple (firmware 0.6.x): cyclic encoder estimates, Set_Input_Torque answers",
-    clocking=Clocking.DRIVE,
+    summary="ODrive CANSimple (firmware 0.6.x): RTR-triggered encoder estimates, Set_Input_Torque answers",
+    clocking=Clocking.HOST,
     min_period_ns=1_000_000,
     max_period_ns=1_000_000_000,
     input_delay_samples=0,
@@ -92,6 +89,6 @@ PROFILE = DriveProfile(
     bus_load=_bus_load,
     parse_options=parse_options,
     make_quantizer=_make_quantizer,
-    tested="byte-exact codec, cantools DBC, watchdog, axis errors, NaN/inf, lockstep and udp_multicast "
-    "real time, fault matrix",
+    tested="byte-exact codec, cantools DBC, watchdog, axis errors, NaN/inf, RTR-triggered lockstep and "
+    "udp_multicast real time, fault matrix, drive-clocked variant",
 )

@@ -7,11 +7,10 @@ torque_constant_Nm_per_A         the drive's ``motor.config.torque_constant`` (r
                                  finite, > 0): amperes of the controller to N m on the wire
 encoder_cpr                      the encoder's counts per turn (required, >= 1): estimates in
                                  turns are quantized to it for the controller
-encoder_msg_rate_ms              the drive's ``can.encoder_msg_rate_ms``: the cyclic
-                                 Get_Encoder_Estimates that clock the loop; must equal the
-                                 control period (default 1). 0: no cyclic estimates, the
-                                 host's RTR Get_Encoder_Estimates triggers each sample
-                                 (host-clocked; only where the profile is host-clocked)
+encoder_msg_rate_ms              the drive's ``can.encoder_msg_rate_ms``. 0 (default, the
+                                 shipped host-clocked profile): no cyclic estimates, the
+                                 host's RTR Get_Encoder_Estimates triggers each sample. A
+                                 drive-clocked loop would set it to the control period
 heartbeat_msg_rate_ms            the drive's ``can.heartbeat_msg_rate_ms`` (default 10):
                                  axis errors reach the host at this rate
 firmware                         the firmware line the frames follow; only "0.6"
@@ -43,7 +42,7 @@ MIN_MSG_RATE_MS = 1  # ODrive's cyclic messages are configured in whole millisec
 class OdriveOptions:
     torque_constant_Nm_per_A: float
     encoder_cpr: int
-    encoder_msg_rate_ms: int = 1
+    encoder_msg_rate_ms: int = 0
     heartbeat_msg_rate_ms: int = 10
     firmware: str = "0.6"
 
@@ -55,7 +54,7 @@ def parse_options(s: ConfigSection) -> OdriveOptions:
     return OdriveOptions(
         torque_constant_Nm_per_A=kt,
         encoder_cpr=s.integer("encoder_cpr", low=1, high=1 << 24),
-        encoder_msg_rate_ms=s.integer("encoder_msg_rate_ms", 1, low=0, high=60_000),
+        encoder_msg_rate_ms=s.integer("encoder_msg_rate_ms", 0, low=0, high=60_000),
         heartbeat_msg_rate_ms=s.integer("heartbeat_msg_rate_ms", 10, low=MIN_MSG_RATE_MS, high=60_000),
         firmware=s.string("firmware", "0.6", FIRMWARE_LINES),
     )
