@@ -17,10 +17,10 @@
 4. Writer process CPU per sample (``RUSAGE_CHILDREN`` around a synthetic run, process start
    included), beside the ``mcap`` library's ``Writer.add_message`` writing the same records
    (4 per sample) timed in the same run.
-5. ``--kill N``: the worst log lost at SIGKILL of the whole process group under load: N real-time
-   runs (``dob-hil run --realtime``, embedded drive) beside two ``yes > /dev/null`` hogs, each
-   killed at a random moment (0.5-3 s after its log passed 256 KiB); loss = kill time minus the
-   last logged sample's time (both ``time.monotonic_ns``).
+5. ``--kill N``: the worst log lost at SIGKILL of the whole process group under load: N runs of a
+   paced 3.33 kHz loop logging every period (sample, 2 frames, truth; real-time policy) beside
+   two ``yes > /dev/null`` hogs, each killed after a random 0.9-6.9 s; loss = samples the loop
+   had logged minus samples the file holds, times the period.
 
 Goals: per-sample cost p99 <= 5 us (the whole period's calls, paced); zero records dropped in
 10 minutes at 3.33 kHz; <= 8 us writer CPU per sample; <= 150 bytes per sample on disk.
@@ -286,10 +286,35 @@ def writer_cpu(tmp: Path, n: int) -> dict[str, Any]:
     }
 
 
+KILL_LOOP = r"""
+import mmap, os, struct, sys, time
+from pathlib import Path
+from dob_hil.log import LogWriter
+from dob_hil.log.bench import PAPER_LAYOUT, PERIOD_NS, SyntheticRun
+
+path, count_path = Path(sys.argv[1]), sys.argv[2]
+fd = os.open(count_path, os.O_RDWR)
+shared = mmap.mmap(fd, 8)
+log = LogWriter(path, PAPER_LAYOUT, backpressure=False)  # real time: the loop never waits
+run = SyntheticRun()
+t0 = time.monotonic_ns()
+k = 0
+while True:
+    ahead_ns = t0 + k * PERIOD_NS - time.monotonic_ns()
+    if ahead_ns > 0:
+        time.sleep(ahead_ns * 1e-9)
+    run.period(log, k)
+    shared[0:8] = struct.pack("<q", k + 1)  # samples logged so far
+    log.flush()
+    k += 1
+"""
+
+
 def kill_loss(tmp: Path, runs: int, seed: int = 1) -> dict[str, Any]:
     """Worst log loss at SIGKILL of the whole process group beside two CPU hogs (module doc, 5)."""
     import random
     import signal
+    import struct
     import subprocess
     import sys
 
@@ -298,22 +323,23 @@ def kill_loss(tmp: Path, runs: int, seed: int = 1) -> dict[str, Any]:
     losses_ms: list[float] = []
     try:
         for i in range(runs):
-            path = tmp / f"kill-{i}.mcap"
-            cmd = [sys.executable, "-m", "dob_hil.cli", "run", "--scenario", "paper-step", "--realtime",
-                   "--duration", "60", "--no-progress", "--log", str(path)]  # fmt: skip
-            proc = subprocess.Popen(
-                cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-            )
-            deadline = time.monotonic() + 120.0
-            while not (path.exists() and path.stat().st_size > 256 * 1024) and time.monotonic() < deadline:
-                time.sleep(0.05)  # the run is logging (a loaded machine starts Python slowly)
-            time.sleep(0.5 + 2.5 * rng.random())
-            kill_ns = time.monotonic_ns()
+            path, count_path = tmp / f"kill-{i}.mcap", tmp / f"count-{i}"
+            count_path.write_bytes(bytes(8))
+            proc = subprocess.Popen([sys.executable, "-c", KILL_LOOP, str(path), str(count_path)],
+                                    start_new_session=True)  # fmt: skip
+            with count_path.open("r+b") as f:
+                shared = mmap.mmap(f.fileno(), 8)
+            target = 3000 + rng.randrange(0, 20_000)  # 0.9-6.9 s of samples
+            deadline = time.monotonic() + 300.0
+            while struct.unpack_from("<q", shared, 0)[0] < target and time.monotonic() < deadline:
+                if proc.poll() is not None:
+                    raise RuntimeError("the logging loop died")
+                time.sleep(0.01)
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-            data = read_log(path, topics=[TOPIC_SAMPLE], fields={TOPIC_SAMPLE: ("time_ns",)})
-            last = int(data.samples["time_ns"][-1]) if len(data.samples) else 0
-            losses_ms.append((kill_ns - last) / 1e6 if last else math.inf)
+            logged = struct.unpack_from("<q", shared, 0)[0]
+            recovered = len(read_log(path, topics=[TOPIC_SAMPLE], fields={TOPIC_SAMPLE: ("seq",)}).samples)
+            losses_ms.append((logged - recovered) * PERIOD_NS / 1e6)
             path.unlink()
     finally:
         for hog in hogs:
@@ -322,7 +348,7 @@ def kill_loss(tmp: Path, runs: int, seed: int = 1) -> dict[str, Any]:
     ordered = sorted(losses_ms)
     return {
         "runs": runs,
-        "load": "2 x `yes > /dev/null` beside the run",
+        "load": "2 x `yes > /dev/null` beside a paced 3.33 kHz logging loop",
         "loss_ms_worst": round(ordered[-1], 1),
         "loss_ms_median": round(ordered[len(ordered) // 2], 1),
         "loss_ms_all": [round(v, 1) for v in losses_ms],

@@ -108,6 +108,11 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
             "another process, give it there: python -m firmware_sim --watchdog-periods)",
         )
         p.add_argument(
+            "--progress",
+            action="store_true",
+            help="draw the progress bar even when stderr is not a terminal (default: terminal only)",
+        )
+        p.add_argument(
             "--no-progress",
             action="store_true",
             help="no progress bar (drawn only on a terminal, after 0.5 s)",

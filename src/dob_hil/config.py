@@ -437,19 +437,7 @@ def _parse_drive(s: _Section) -> DriveConfig:
         sub = s.sub(profile.name)
         options = profile.parse_options(sub)
         sub.finish()
-    d = DriveConfig(
-        profile=profile.name,
-        node_id=s.get("node_id"),
-        bitrate_bps=s.get("bitrate_bps"),
-        current_limit_A=s.get("current_limit_A"),
-        dac_lsb_A=s.get("dac_lsb_A"),
-        encoder_counts_per_unit=s.get("encoder_counts_per_unit"),
-        encoder_bits=s.get("encoder_bits"),
-        watchdog_periods=s.get("watchdog_periods"),
-        feedback_timeout_periods=s.get("feedback_timeout_periods"),
-        clear_fault=s.get("clear_fault"),
-        options=options,
-    )
+    d = DriveConfig(profile=profile.name, options=options, **s.get_all(skip=("profile",)))
     if d.current_limit_A / d.dac_lsb_A > 32767:
         raise ConfigError(
             s.name("current_limit_A"),
@@ -471,18 +459,7 @@ def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
             raise ConfigError(s.name("disturbance"), "expected an array of tables [[sim.disturbance]]")
         for i, item in enumerate(raw):
             ds = _Section(item, f"{s.name('disturbance')}[{i}]")
-            dists.append(
-                DisturbanceConfig(
-                    kind=ds.get("kind"),
-                    amplitude_A=ds.get("amplitude_A"),
-                    frequency_hz=ds.get("frequency_hz"),
-                    phase_rad=ds.get("phase_rad"),
-                    start_s=ds.get("start_s"),
-                    std_A=ds.get("std_A"),
-                    seed=ds.get("seed"),
-                    input_index=ds.get("input_index"),
-                )
-            )
+            dists.append(DisturbanceConfig(**ds.get_all()))
             if dists[-1].input_index > plant.n_inputs - 1:
                 raise ConfigError(
                     ds.name("input_index"),
@@ -494,12 +471,7 @@ def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
     if init is not None and len(init) != plant.n_states:
         raise ConfigError(s.name("initial_state"), f"expected {plant.n_states} values, got {len(init)}")
     sim = SimConfig(
-        substeps=s.get("substeps"),
-        noise_counts_std=s.get("noise_counts_std"),
-        seed=s.get("seed"),
-        latency_us=s.get("latency_us"),
-        jitter_us=s.get("jitter_us"),
-        loss_probability=s.get("loss_probability"),
+        **s.get_all(skip=("initial_state",)),
         initial_state=init,
         disturbances=tuple(dists),
         faults=_parse_faults(s.sub("faults")),
@@ -509,12 +481,7 @@ def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
 
 
 def _parse_faults(s: _Section) -> FaultsConfig:
-    faults = FaultsConfig(
-        fault_at_s=s.get("fault_at_s"),
-        silent_at_s=s.get("silent_at_s"),
-        encoder_jump_at_s=s.get("encoder_jump_at_s"),
-        encoder_jump_counts=s.get("encoder_jump_counts"),
-    )
+    faults = FaultsConfig(**s.get_all())
     if faults.encoder_jump_at_s is not None and faults.encoder_jump_counts == 0:
         raise ConfigError(s.name("encoder_jump_counts"), "missing or 0: give the jump's size in counts")
     s.finish()
@@ -583,21 +550,6 @@ def check_cpus(cpus: Sequence[int], field_name: str) -> None:
 
 
 def _parse_run(s: _Section) -> RunConfig:
-    run = RunConfig(
-        duration_s=s.get("duration_s"),
-        dob_enabled=s.get("dob_enabled"),
-        log_dir=Path(s.get("log_dir")),
-        missing_feedback_policy=s.get("missing_feedback_policy"),
-        max_missing_periods=s.get("max_missing_periods"),
-        sched_fifo=s.get("sched_fifo"),
-        cpu_affinity=s.get("cpu_affinity"),
-        freeze_gc=s.get("freeze_gc"),
-    )
-    if run.cpu_affinity is not None:
-        for cpu in run.cpu_affinity:  # which CPUs exist is checked on the machine that runs it
-            if not 0 <= cpu < 4096:
-                raise ConfigError(
-                    s.name("cpu_affinity"), f"CPU {_short_int(cpu)} is not a CPU number (0-4095)"
-                )
+    run = RunConfig(**s.get_all(skip=("log_dir",)), log_dir=Path(s.get("log_dir")))
     s.finish()
     return run

@@ -95,7 +95,7 @@ class _Section:
         if f.kind == "strings":
             return self.strings(key)
         if f.kind == "integers":
-            return self.integers(key)
+            return self.integers(key, low=_int_or_none(f.low), high=_int_or_none(f.high))
         if f.kind == "numbers":
             return self.numbers(key, low=f.low, low_open=f.low_open, magnitude=f.high)
         if f.kind == "matrix":
@@ -188,7 +188,9 @@ class _Section:
             _check_text(f"{self.name(key)}[{i}]", v, MAX_STRING_CHARS)
         return tuple(value)
 
-    def integers(self, key: str) -> tuple[int, ...] | None:
+    def integers(
+        self, key: str, *, low: int | None = None, high: int | None = None
+    ) -> tuple[int, ...] | None:
         if not self._ask(key):
             return None
         value = self.raw(key)
@@ -196,7 +198,17 @@ class _Section:
             isinstance(v, int) and not isinstance(v, bool) for v in value
         ):
             raise ConfigError(self.name(key), f"expected a list of integers, got {_kind(value)}")
+        for i, v in enumerate(value):
+            if (low is not None and v < low) or (high is not None and v > high):
+                raise ConfigError(
+                    self.name(key), f"entry [{i}] must be in {low}..{high}, got {_short_int(v)}"
+                )
         return tuple(value)
+
+    def get_all(self, skip: tuple[str, ...] = ()) -> dict[str, Any]:
+        """Every schema field of this section but ``skip``, by key: a dataclass's keyword arguments."""
+        assert self.spec is not None
+        return {key: self.get(key) for key in self.spec.keys if key not in skip}
 
     def numbers(
         self,
@@ -285,15 +297,21 @@ def _check_text(name: str, value: str, max_chars: int) -> None:
         raise ConfigError(name, f"is {len(value)} characters long; at most {max_chars}")
 
 
-def _to_float(value: object, name: str) -> float:
+def _to_float(value: object, name: str, where: str = "") -> float:
+    """A finite float from a TOML number; ``where`` ("entry [i][j] ") places it in a matrix."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(name, f"expected a number, got {_kind(value)}")
+        problem = (
+            f"{where}is {_kind(value)}, expected a number"
+            if where
+            else f"expected a number, got {_kind(value)}"
+        )
+        raise ConfigError(name, problem)
     try:
         x = float(value)
     except OverflowError:
-        raise ConfigError(name, f"out of range: {_short_int(int(value))}") from None
+        raise ConfigError(name, f"{where}out of range: {_short_int(int(value))}") from None
     if not math.isfinite(x):
-        raise ConfigError(name, f"must be finite, got {x}")
+        raise ConfigError(name, f"{where}must be finite, got {x}")
     return x
 
 
@@ -358,14 +376,7 @@ def parse_matrix(
         if len(row) != width:
             raise ConfigError(name, f"row {i} has {len(row)} entries, row 0 has {width}")
         for j, v in enumerate(row):
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(name, f"entry [{i}][{j}] is {_kind(v)}, expected a number")
-            try:
-                x = float(v)
-            except OverflowError:
-                raise ConfigError(name, f"entry [{i}][{j}] out of range: {_short_int(int(v))}") from None
-            if not math.isfinite(x):
-                raise ConfigError(name, f"entry [{i}][{j}] must be finite, got {v}")
+            x = _to_float(v, name, f"entry [{i}][{j}] ")
             if abs(x) > magnitude:
                 raise ConfigError(name, f"entry [{i}][{j}] must have a magnitude <= {magnitude:g}, got {x:g}")
     arr = np.array(rows, dtype=np.float64)

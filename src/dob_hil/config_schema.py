@@ -5,8 +5,11 @@ One table, used three ways: :mod:`dob_hil.config` parses and validates each key 
 reference part is rendered from it (:mod:`dob_hil.config_doc`, checked by a test) and
 ``dob-hil config --template`` writes a commented starter config from it.
 
-Adding a key is one :class:`Field` line in its section below plus reading it where the section is
-parsed (``s.get("key")``); the doc, the template and the unknown-key hints follow on their own.
+Adding a key is one :class:`Field` line in its section below plus the dataclass field of the same
+name in :mod:`dob_hil.config` (``[drive]``, ``[sim]``, ``[[sim.disturbance]]``, ``[sim.faults]`` and
+``[run]`` pass every schema key to their dataclass with ``section.get_all()``; the others read
+each key with ``section.get("key")``). A new table is one :class:`SectionSpec`. The doc
+(``python3 tools/config_doc.py``), the template and the unknown-key hints follow on their own.
 
 Bounds are physical sanity limits, chosen so that no accepted value can overflow a float or an
 integer conversion during a run (a time of 1e308 s, a 1e308 A disturbance): far outside any real

@@ -7,13 +7,13 @@ completes, accounts for every period, never exceeds the limit and ends with the 
 
 from __future__ import annotations
 
-import json
 import os
 import random
 from pathlib import Path
 
 import numpy as np
 import pytest
+from udp_isolation import private_udp_channel
 
 from dob_hil.config import load_config
 from dob_hil.link.cia402 import codec
@@ -26,13 +26,12 @@ from firmware_sim import process
 pytestmark = pytest.mark.realtime
 
 
-def test_realtime_cia402_run_over_udp_multicast(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    port = random.randint(40_000, 49_999)  # private: other tests' drives use python-can's default port
-    monkeypatch.setenv("CAN_CONFIG", json.dumps({"port": port}))
-    try:
-        channel = process.free_udp_multicast_channel()
-    except RuntimeError as exc:
-        pytest.skip(str(exc))
+def test_realtime_cia402_run_over_udp_multicast(tmp_path: Path) -> None:
+    with private_udp_channel() as chan:  # a private network namespace and port
+        _run(tmp_path, chan.channel)
+
+
+def _run(tmp_path: Path, channel: str) -> None:
     node_id = random.randint(2, 120)
     # watchdogs and host timeout widened from 10 periods to 10000 (3 s): a loaded CI machine stalls
     # a process (or its log writer) for up to hundreds of ms, which must not end the run

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import time
 from pathlib import Path
 
@@ -13,7 +12,8 @@ import can
 import canopen
 import pytest
 from sim_support import TIMEOUT_S, make_config, unique_channel
-from standalone import REPO_ROOT, node_id_for_worker, udp_channel_or_skip
+from standalone import REPO_ROOT, node_id_for_worker
+from udp_isolation import private_udp_channel
 
 from dob_hil.scenarios import scenario_variant
 from firmware_sim import process
@@ -79,8 +79,11 @@ def test_realtime_drive_follows_the_masters_sync_and_faults_when_it_stops() -> N
 
 
 def test_standalone_process_is_a_cia402_slave_over_udp_multicast(tmp_path: Path) -> None:
-    group = udp_channel_or_skip()
-    port = random.randint(40000, 60000)  # a private port: no other test's frames (SYNC is broadcast)
+    with private_udp_channel() as chan:  # a private namespace and port (SYNC is broadcast)
+        _run_standalone(tmp_path, chan.channel, chan.port)
+
+
+def _run_standalone(tmp_path: Path, group: str, port: int) -> None:
     node_id = node_id_for_worker()
     # this master sends each SYNC after the previous TPDO arrived: tens of ms apart on a loaded
     # machine, so the SYNC-loss watchdog gets 20000 periods (6 s) here (its trip is tested above)

@@ -223,3 +223,13 @@ def test_shipped_scenarios_are_commented_examples() -> None:
         text = scenario_path(name).read_text()
         comments = [line for line in text.splitlines() if line.lstrip().startswith("#") or " # " in line]
         assert len(comments) >= 15, name
+
+
+def test_progress_can_be_forced_into_a_pipe() -> None:
+    stream = io.StringIO()
+    now = [0.0]
+    bar = ProgressBar("x", stream=stream, force=True, clock=lambda: now[0])
+    now[0] = 1.0
+    bar(50, 100)
+    bar.finish(100, 100)
+    assert "50.0%" in stream.getvalue() and "100.0%" in stream.getvalue()

@@ -39,7 +39,7 @@ class Run:
         exe = [str(DOB_HIL)] if DOB_HIL.exists() else [sys.executable, "-m", "dob_hil.cli"]
         self._tty, tty_child = pty.openpty()
         self.proc = subprocess.Popen(
-            [*exe, "run", *args, "--log", str(log)],
+            [*exe, "run", *args, "--progress", "--log", str(log)],
             stdout=subprocess.PIPE,
             stderr=tty_child,
             text=True,

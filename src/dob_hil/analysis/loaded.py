@@ -169,8 +169,16 @@ def interpret(path: Path, data: LogData) -> LoadedLog:
     run = data.metadata.get("run", {})
     design = _design_of(data, warnings)
     config = _config_of(data, warnings)
-    if "summary" not in data.metadata:
+    summary = data.metadata.get("summary")
+    if summary is None:
         warnings.append("no summary record: the run did not close the log (crash or truncation)")
+    else:
+        dropped = _int_or_none(summary.get("dropped_records"))
+        if dropped:
+            warnings.append(
+                f"{dropped} log records were dropped while the run wrote (the log writer fell behind)"
+            )
+            data.complete = False
     bitrate = _int_or_none(run.get("bitrate_bps"))
     if bitrate is None and config is not None:
         bitrate = config.drive.bitrate_bps

@@ -421,6 +421,8 @@ def _plot_timing(plt: Any, inputs: list[PlotInput], out: Path) -> Path | None:
     for ax in (ax1, ax2):
         ax.grid(True, alpha=0.3)
         ax.xaxis.set_major_locator(plt.MaxNLocator(5))
+        if not ax.patches:
+            ax.text(0.5, 0.5, "no samples to show", transform=ax.transAxes, ha="center", color="0.4")
     _legend_below(fig, ax1, ncol=1)
     fig.suptitle(_title([item for _, item in realtime], "real-time timing"))
     return _save(plt, fig, out)

@@ -1,6 +1,7 @@
 """A one-line progress bar on stderr for long runs.
 
-Drawn only when the stream is a terminal (never into a pipe or a file), only once a run has taken
+Drawn only when the stream is a terminal (never into a pipe or a file, unless forced with
+``dob-hil run --progress``), only once a run has taken
 ``delay_s`` of wall time (a short run prints nothing), at most ``max_rate_hz`` times a second,
 fitted to the terminal's width, with an ETA; :meth:`ProgressBar.finish` draws the final state
 (100 % for a completed run) and ends the line.
@@ -34,10 +35,11 @@ class ProgressBar:
         delay_s: float = 0.5,
         max_rate_hz: float = 10.0,
         clock: Callable[[], float] | None = None,
+        force: bool = False,
     ) -> None:
         self._stream = stream if stream is not None else sys.stderr
         self._label = label
-        self._enabled = enabled and _is_terminal(self._stream)
+        self._enabled = enabled and (force or _is_terminal(self._stream))
         self._delay_s = delay_s
         self._interval_s = 1.0 / max_rate_hz
         self._clock = clock if clock is not None else time.perf_counter

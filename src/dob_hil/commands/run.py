@@ -62,7 +62,7 @@ def format_summary(s: dict[str, object]) -> str:
         f"({s['skipped_samples']} of them in sequence gaps), "
         f"{_plural(s['overruns'], 'overrun')}",
         f"  controller step  max {int(s['compute_ns_max']) / 1000:.1f} us "  # type: ignore[call-overload]
-        "(estimate, quantize, predict and two clock reads; the pure step alone: benchmarks/)",
+        "(step, limit, quantise, predict; bench_step.py times the step alone)",
         f"  log              {s['log_path']} (dropped records: {s['log_dropped_records']})",
     ]
     if s["events"]:
@@ -99,7 +99,9 @@ def main(args: argparse.Namespace) -> int:
     if args.no_log and args.log:
         raise ConfigError("--no-log", "give --log PATH or --no-log, not both")
     bar = ProgressBar(
-        f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
+        f"{config.name}{' (no DOB)' if args.no_dob else ''}",
+        not args.no_progress and not args.json,
+        force=args.progress,
     )
     options = RunOptions(
         interface=args.interface,

@@ -11,6 +11,7 @@ and the log call it on every log they make (:func:`assert_complete`).
 
 from __future__ import annotations
 
+import json
 import mmap
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ class ChannelSequence:
     messages: int
     first: int | None
     last: int | None
-    missing: int  # numbers in 0..last that no message has
+    missing: int  # numbers below the count made (summary ``records_made``, else last + 1) absent
     duplicates: int  # messages whose number an earlier message already had
     first_missing: list[int] = field(default_factory=list)  # up to 10
     first_duplicates: list[int] = field(default_factory=list)  # up to 10
@@ -58,6 +59,7 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
         reader._learn_channels()
         topics = {c.id: c.topic for c in reader.fmap.channels.values()}
         parts: dict[int, list[np.ndarray]] = {cid: [] for cid in topics}
+        made = _records_made(reader.fmap.metadata.get("summary", {}))
         for group in reader._groups():
             table = reader._table(group)
             seqs = _gather(group.buf, np.dtype("<u4"), table.offsets + 11)
@@ -66,17 +68,31 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
             reader._release(group)
     finally:
         mm.close()
-    return {topics.get(cid, f"channel {cid}"): _summarise(topics.get(cid, f"channel {cid}"), chunks)
-            for cid, chunks in sorted(parts.items())}  # fmt: skip
+    out = {}
+    for cid, chunks in sorted(parts.items()):
+        topic = topics.get(cid, f"channel {cid}")
+        out[topic] = _summarise(topic, chunks, made.get(topic))
+    return out
 
 
-def _summarise(topic: str, chunks: list[np.ndarray]) -> ChannelSequence:
+def _records_made(summary: dict[str, str]) -> dict[str, int]:
+    """The writer's count of records made per topic (its summary), {} if absent or unreadable."""
+    try:
+        made = json.loads(summary.get("records_made", "{}"))
+    except (ValueError, RecursionError):
+        return {}
+    if not isinstance(made, dict):
+        return {}
+    return {str(k): v for k, v in made.items() if isinstance(v, int) and 0 <= v < 1 << 40}
+
+
+def _summarise(topic: str, chunks: list[np.ndarray], made: int | None) -> ChannelSequence:
     seqs = np.concatenate(chunks).astype(np.int64) if chunks else np.zeros(0, dtype=np.int64)
     if len(seqs) == 0:
-        return ChannelSequence(topic, 0, None, None, 0, 0)
+        return ChannelSequence(topic, 0, None, None, made or 0, 0, list(range(min(made or 0, 10))))
     unique, counts = np.unique(seqs, return_counts=True)
     repeated = unique[counts > 1]
-    last = int(unique[-1])
+    last = max(int(unique[-1]), (made or 0) - 1)
     present = np.zeros(last + 1, dtype=bool)
     present[unique] = True
     absent = np.flatnonzero(~present)

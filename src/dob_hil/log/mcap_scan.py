@@ -12,6 +12,7 @@ Records follow the MCAP specification (https://mcap.dev/spec): ``opcode u8, leng
 from __future__ import annotations
 
 import bisect
+import contextlib
 import mmap
 import struct
 import zlib
@@ -290,7 +291,10 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
     pos = len(MAGIC)
     last_chunk: ChunkRef | None = None
     data_end_found = False
+    released = 0  # file pages the walk touched are dropped from this process every 64 MiB
     while True:
+        if pos - released >= _RELEASE_BYTES:
+            released = _release(buf, released, pos)
         if pos >= data_limit:
             if summary is None:
                 _warn_truncated(fmap, pos, None)
@@ -362,6 +366,7 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
             pos = resume
             continue
         pos = end
+    _release(buf, released, pos)
     if summary is not None:
         for record in summary.schemas.values():
             fmap.schemas.setdefault(record.id, record)
@@ -371,6 +376,21 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
         fmap.warnings.append("the file has no valid footer: it was not closed cleanly")
     fmap.complete = summary is not None and data_end_found and not fmap.warnings
     return fmap
+
+
+_RELEASE_BYTES: Final = 64 << 20
+
+
+def _release(buf: Buffer, start: int, end: int) -> int:
+    """Drop the mapped file pages of ``buf[start:end]`` from this process (page cache keeps them),
+    so mapping a long log does not grow the resident size; returns the new release mark."""
+    if isinstance(buf, mmap.mmap) and hasattr(buf, "madvise"):
+        first = start // mmap.PAGESIZE * mmap.PAGESIZE
+        last = end // mmap.PAGESIZE * mmap.PAGESIZE
+        if last > first:
+            with contextlib.suppress(OSError, ValueError):
+                buf.madvise(mmap.MADV_DONTNEED, first, last - first)
+    return end
 
 
 def _plausible(buf: Buffer, pos: int, limit: int, truncation_possible: bool) -> bool:

@@ -68,6 +68,11 @@ from dob_hil.log.schemas import (
     EVENT_LEVELS,
     MESSAGE_HEADER,
     OP_MESSAGE,
+    TOPIC_CAN,
+    TOPIC_CAN_FD,
+    TOPIC_EVENT,
+    TOPIC_SAMPLE,
+    TOPIC_TRUTH,
     LogLayout,
     can_fields,
     encode_event_cdr,
@@ -591,7 +596,8 @@ class LogWriter:
             return
         if self._backlog and self._backlog_bytes + len(batch) > self._max_backlog:
             self._drain()
-        if self._backlog_bytes + len(batch) > self._max_backlog:
+        # a batch larger than the whole backlog bound is taken when the backlog is empty
+        if self._backlog_bytes and self._backlog_bytes + len(batch) > self._max_backlog:
             if self._backpressure:
                 self._wait_for_room(len(batch))
                 if self._poll_failed():
@@ -697,6 +703,16 @@ class LogWriter:
         self._backlog_bytes = 0
 
     # ------------------------------------------------------------------ close
+    def _records_made(self) -> dict[str, int]:
+        """Per topic, how many records were made (sequence numbers given out), dropped or not."""
+        return {
+            TOPIC_SAMPLE: self._seq_sample,
+            TOPIC_CAN: self._seq_can,
+            TOPIC_CAN_FD: self._seq_can_fd,
+            TOPIC_TRUTH: self._seq_truth,
+            TOPIC_EVENT: self._seq_event,
+        }
+
     @property
     def stats(self) -> LogStats:
         return LogStats(
@@ -735,6 +751,7 @@ class LogWriter:
                 full_summary.setdefault("log_backlog_high_water_bytes", self._high_water)
                 full_summary.setdefault("log_backpressure_wait_ns", self._wait_ns)
                 full_summary.setdefault("log_backpressure", self._backpressure)
+                full_summary.setdefault("records_made", self._records_made())
                 if self._pending_dropped:
                     full_summary.setdefault("dropped_records_unreported", self._pending_dropped)
                 os.set_blocking(self._fd, True)

@@ -257,6 +257,7 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
             layout,
             metadata={"run": run_meta, "versions": versions_metadata()},
             attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
+            backpressure=mode == "lockstep",  # real time drops (counted) rather than wait
         ) as log,
     ):
         return _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
