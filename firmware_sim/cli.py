@@ -33,6 +33,7 @@ from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.behaviour import VARIANTS
 from firmware_sim.cia402 import SimulatedCia402Drive
 from firmware_sim.drive import SimulatedDrive
+from firmware_sim.odrive import SimulatedOdrive
 from firmware_sim.plant import check_single_axis
 from firmware_sim.process import READY_TEXT
 from firmware_sim.truth import UdpTruthSender
@@ -157,10 +158,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         for refused in rt.refused:
             print(f"{PROG}: warning: {refused}", file=sys.stderr, flush=True)
         spin_ns = _spin_ns(args, rt.applied)
-        drive: SimulatedDrive | SimulatedCia402Drive
+        drive: SimulatedDrive | SimulatedCia402Drive | SimulatedOdrive
         try:
             if config.drive.profile == "cia402":  # the host's SYNC is this drive's clock: no timer to spin
                 drive = SimulatedCia402Drive(bus, config, clock="realtime", truth_sink=sink)
+            elif config.drive.profile == "odrive":  # the simulated ODrive (CANSimple)
+                drive = SimulatedOdrive(bus, config, clock="realtime", truth_sink=sink, spin_ns=spin_ns)
             else:
                 drive = SimulatedDrive(
                     bus,

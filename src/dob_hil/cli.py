@@ -28,6 +28,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "campaign": ("dob_hil.commands.campaign", "robustness campaign: many lockstep runs, a table, a report"),
     "config": ("dob_hil.commands.config", "the config reference (--doc) or a commented starter (--template)"),
     "init": ("dob_hil.commands.config", "write a commented starter config to a new file"),
+    "profiles": ("dob_hil.commands.profiles", "the drive profiles and the bus load each gives for a config"),
 }
 
 
@@ -170,6 +171,10 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
     elif name == "campaign":
         _add_campaign_arguments(p)
+    elif name == "profiles":
+        p.add_argument("config", nargs="?", help="TOML config or scenario: bus load of each profile for it")
+        p.add_argument("--json", action="store_true", help="print the catalogue as JSON")
+        p.add_argument("--markdown", action="store_true", help="print the README's catalogue table")
     elif name == "config":
         g = p.add_mutually_exclusive_group(required=True)
         g.add_argument("--doc", action="store_true", help="the reference of every key (Markdown)")

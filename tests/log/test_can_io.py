@@ -147,19 +147,22 @@ import can, signal, subprocess, sys, time
 port, out = int(sys.argv[1]), sys.argv[2]
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "add", "224.0.0.0/4", "dev", "lo"], check=True)
-logger = subprocess.Popen([sys.executable, "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.9",
-                           "--bus-kwargs", f"port={port}", "-f", out])
+logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.9",
+                           "--bus-kwargs", f"port={port}", "-f", out], stdout=subprocess.PIPE, text=True)
 try:
+    assert logger.stdout is not None
+    for line in logger.stdout:  # python-can's logger prints this once its bus is open
+        if line.startswith("Can Logger"):
+            break
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port, receive_own_messages=False)
-    time.sleep(3.0)  # the logger process is up and listening (it imports python-can first)
     for i in range(20):
         bus.send(can.Message(arbitration_id=0x300 + i, data=bytes([i] * 4), is_extended_id=False))
         time.sleep(0.01)
-    time.sleep(1.0)
+    time.sleep(3.0)  # the logger's recv(1) loop takes what is queued (it may be starved for a while)
     bus.shutdown()
 finally:
     logger.send_signal(signal.SIGINT)
-    sys.exit(logger.wait(timeout=30))
+    sys.exit(logger.wait(timeout=60))
 """
 
 
@@ -174,7 +177,7 @@ def test_python_can_logger_cli_records_a_bus_to_mcap(tmp_path: Path) -> None:
     driver.write_text(DRIVER)
     port = 47000 + (hash(str(tmp_path)) % 2000)
     done = subprocess.run(["unshare", "-n", sys.executable, str(driver), str(port), str(out)],
-                          capture_output=True, text=True, timeout=90, check=False)  # fmt: skip
+                          capture_output=True, text=True, timeout=180, check=False)  # fmt: skip
     assert done.returncode == 0 and out.exists(), done.stderr
     got = list(can.LogReader(str(out)))
     assert [m.arbitration_id for m in got] == [0x300 + i for i in range(20)], done.stderr

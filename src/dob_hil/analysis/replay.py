@@ -29,6 +29,7 @@ from dob_hil.design.tracking import controller_gains, tracking_map
 from dob_hil.errors import DesignError, DobHilError
 from dob_hil.link.native import DacQuantizer
 from dob_hil.log.schemas import FLAG_SATURATED
+from dob_hil.profiles import get_profile
 
 MAX_REPORTED = 10
 
@@ -91,7 +92,9 @@ def logged_missing_policy(log: LoadedLog, notes: list[str]) -> MissingPolicy:
 
 def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
     step = compile_step(controller_gains(design), log.dob_enabled)  # with the reference feedforward
-    return rerun(step, DacQuantizer(drive).quantize, log.data.samples, design.C, missing, log.data.events)
+    make_quantizer = get_profile(drive.profile).make_quantizer
+    quantize = DacQuantizer(drive).quantize if make_quantizer is None else make_quantizer(drive)
+    return rerun(step, quantize, log.data.samples, design.C, missing, log.data.events)
 
 
 def _bits(values: npt.NDArray[Any]) -> npt.NDArray[Any]:

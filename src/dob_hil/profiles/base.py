@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 if TYPE_CHECKING:
     import can
 
-    from dob_hil.config import Config, ConfigSection
+    from dob_hil.config import Config, ConfigSection, DriveConfig
     from dob_hil.link.base import DriveLink, EventHook, FrameHook
     from dob_hil.link.busload import BusLoad
 
@@ -62,6 +62,7 @@ class SimulatedCounterpart(Protocol):
 
 
 TruthSink = Callable[[Any], None]
+QuantizeFn = Callable[[tuple[float, ...]], tuple[tuple[int, ...], tuple[float, ...], bool]]
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,8 @@ class DriveProfile:
     bus_load: Callable[[Config], BusLoad]  # worst-case cyclic load for a config
     parse_options: Callable[[ConfigSection], object] | None = None  # the [drive.<name>] table
     tested: str = ""  # what the test suite covers, for the catalogue
+    # the link's quantize() as a pure function of the drive config, for `replay` (None: DacQuantizer)
+    make_quantizer: Callable[[DriveConfig], QuantizeFn] | None = None
 
     def check_period(self, period_ns: int) -> None:
         """Refuse a control period the profile cannot serve, naming both numbers."""

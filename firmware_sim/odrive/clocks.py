@@ -1,0 +1,274 @@
+"""The simulated ODrive's two clocks: lockstep (driven by the host's frames) and real time.
+
+Lockstep: :meth:`OdriveLockstep.service` drains the frames pending on the drive's bus end and
+acts on each at the current simulated instant. Set_Axis_State is answered by a heartbeat at once
+(the drive's clock stands still until the host answers, so the heartbeat a real drive sends
+within ``heartbeat_msg_rate_ms`` comes now). With cyclic estimates (``encoder_msg_rate_ms`` =
+Ts, drive-clocked) entering closed loop sends the estimates of the current instant, and a
+Set_Input_Torque answering the last estimates integrates one period (the torque acting from the
+sample instant), closes it (watchdog, heartbeat) and sends the next estimates; torque inputs
+before any estimates (the enable sequence) only set the input, and an RTR is answered with the
+estimates of the current instant. Without them (``encoder_msg_rate_ms = 0``, host-clocked) the
+RTR is the clock: the first is answered with the estimates of the current instant, each later
+one integrates a period first (torque inputs in between act from the sample instant).
+:meth:`OdriveLockstep.advance_period` runs a period without a torque input (estimates only if
+cyclic). ``sim.loss_probability`` drops estimates (seeded).
+
+Real time: a timer thread wakes on absolute deadlines ``t0 + k Ts``, integrates to ``k Ts``,
+closes the period and sends the cyclic estimates (if configured); a receive thread acts on each
+frame at its arrival (a torque acts from its arrival, an RTR is answered with the estimates
+sampled at its arrival). Exceptions in either thread stop both and are re-raised by
+:meth:`OdriveRealtime.check` / :meth:`OdriveRealtime.stop`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import can
+
+from dob_hil.config import Config
+from dob_hil.link.odrive.codec import CmdId
+from firmware_sim.impairments import FeedbackImpairment
+from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
+
+RECV_POLL_S = 0.05
+MAX_SLEEP_S = 0.05
+
+
+class OdriveLockstep:
+    def __init__(self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None) -> None:
+        self.bus = bus
+        self.core = OdriveCore(config, want_truth=truth_sink is not None)
+        self.truth_sink = truth_sink
+        sim = config.sim
+        self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
+        self._awaiting = False  # estimates went out; the next torque input closes the period
+        self._sampled_at = -1  # the instant the last estimates were taken at
+        self._truth_at = -1  # the instant of the last ground-truth record
+
+    def service(self) -> int:
+        recv, core = self.bus.recv, self.core
+        n = 0
+        while True:
+            msg = recv(0.0)
+            if msg is None:
+                return n
+            n += 1
+            if msg.is_error_frame:
+                core.stats.rx_errors += 1
+                continue
+            if msg.is_extended_id:
+                core.stats.frames_ignored += 1
+                continue
+            was_closed = core.closed_loop
+            cmd = core.on_frame(msg.arbitration_id, msg.data, msg.is_remote_frame, core.time_ns)
+            if cmd is CmdId.SET_INPUT_TORQUE and self._awaiting and core.cyclic:
+                self._run_period()
+                return n
+            if cmd is CmdId.GET_ENCODER_ESTIMATES:
+                core.stats.rtr_answered += 1
+                if core.cyclic or self._sampled_at != core.time_ns:
+                    self._send_estimates()  # the estimates of this instant
+                    continue
+                self._run_period()  # host-clocked: each RTR after the first is the next instant
+                return n
+            elif cmd is CmdId.SET_AXIS_STATE:
+                core.heartbeat_now()
+                self._send_outgoing()
+                if core.closed_loop and not was_closed and core.cyclic:
+                    self._send_estimates()
+            else:
+                self._send_outgoing()
+
+    def _run_period(self, *, sample: bool = True) -> None:
+        core = self.core
+        core.integrate_to(core.time_ns + core.period_ns)
+        core.period_boundary()
+        self._send_outgoing()
+        if sample:
+            self._send_estimates()
+        elif self.truth_sink is not None and self.core.want_truth:
+            truth = self.core.truth()  # the log's truth channel follows the drive's clock
+            self._truth_at = self.core.time_ns
+            self.truth_sink(truth)
+
+    def advance_period(self) -> None:
+        """One period without a torque input; the estimates follow if they are cyclic."""
+        self._run_period(sample=self.core.cyclic)
+
+    def _send_estimates(self) -> None:
+        payload, truth = self.core.estimates()
+        self._sampled_at = self.core.time_ns
+        self._send_outgoing()  # an error the sample raised goes out first
+        self._awaiting = True
+        if self.impairment.lost():
+            self.core.stats.feedback_lost += 1
+        elif self._send(self.core.estimates_id, payload):
+            self.core.stats.feedback_sent += 1
+        if truth is not None and self.truth_sink is not None and self._truth_at != self.core.time_ns:
+            self._truth_at = self.core.time_ns
+            self.truth_sink(truth)
+
+    def _send_outgoing(self) -> None:
+        for aid, payload in self.core.take_outgoing():
+            self._send(aid, payload)
+
+    def _send(self, arbitration_id: int, payload: bytes) -> bool:
+        if self.core.silent:
+            self.core.stats.frames_suppressed += 1
+            return False
+        # stamped with the simulated time, as a drive's controller stamps on its own clock
+        stamp_s = self.core.time_ns * 1e-9
+        self.bus.send(
+            can.Message(timestamp=stamp_s, arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        )
+        return True
+
+
+class OdriveRealtime:
+    def __init__(
+        self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None, *, spin_ns: int = 0
+    ) -> None:
+        self.bus = bus
+        self.core = OdriveCore(config, want_truth=truth_sink is not None)
+        self.truth_sink = truth_sink
+        self.spin_ns = spin_ns
+        sim = config.sim
+        self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._error: BaseException | None = None
+        self._t0_ns = 0
+        self._started = False
+
+    def start(self) -> None:
+        if self._started:
+            raise RuntimeError("the real-time drive was already started")
+        self._started = True
+        self._t0_ns = time.monotonic_ns()
+        for name, target in (("odrive-timer", self._timer_loop), ("odrive-rx", self._rx_loop)):
+            t = threading.Thread(target=self._guarded, args=(target,), name=name, daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join()
+        self.check()
+
+    def check(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    @property
+    def running(self) -> bool:
+        return self._started and not self._stop.is_set()
+
+    def snapshot(self) -> tuple[bool, int, tuple[float, ...], int, OdriveStats]:
+        with self._lock:
+            c = self.core
+            return c.closed_loop, c.period_index, c.plant.state, c.time_ns, OdriveStats(**vars(c.stats))
+
+    def _guarded(self, target: Callable[[], None]) -> None:
+        try:
+            target()
+        except BaseException as exc:
+            if self._error is None:
+                self._error = exc
+            self._stop.set()
+
+    def _wait_until(self, deadline_ns: int) -> None:
+        spin = self.spin_ns
+        while not self._stop.is_set():
+            remaining = deadline_ns - time.monotonic_ns()
+            if remaining <= 0:
+                return
+            if remaining > spin:
+                time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
+            else:
+                while time.monotonic_ns() < deadline_ns:
+                    pass
+                return
+
+    def _timer_loop(self) -> None:
+        core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
+        k = 0
+        while not self._stop.is_set():
+            self._wait_until(t0 + k * period_ns)
+            if self._stop.is_set():
+                return
+            with self._lock:
+                core.integrate_to(k * period_ns)
+                if k > 0:
+                    core.period_boundary()
+                payload, truth = core.estimates()
+                frames = core.take_outgoing()
+                lost = self.impairment.lost()
+                if lost:
+                    core.stats.feedback_lost += 1
+            for aid, data in frames:
+                self._send(aid, data)
+            if not lost and core.cyclic:
+                self._send(core.estimates_id, payload)
+            if truth is not None and self.truth_sink is not None:
+                self.truth_sink(truth)
+            k += 1
+            latest = (time.monotonic_ns() - t0) // period_ns
+            if latest > k:
+                with self._lock:
+                    core.stats.overruns += latest - k
+                k = latest
+
+    def _rx_loop(self) -> None:
+        core, t0 = self.core, self._t0_ns
+        recv = self.bus.recv
+        while not self._stop.is_set():
+            msg = recv(RECV_POLL_S)
+            if msg is None or msg.is_extended_id:
+                continue
+            if msg.is_error_frame:
+                with self._lock:
+                    core.stats.rx_errors += 1
+                continue
+            if msg.arbitration_id >> 5 != core.node_id:
+                continue  # another node's frame
+            if not msg.is_remote_frame and msg.arbitration_id in (core.estimates_id, core.heartbeat_id):
+                continue  # our own frames echoed back (udp_multicast)
+            now = time.monotonic_ns()
+            answer: bytes | None = None
+            with self._lock:
+                t = max(now - t0, core.time_ns)
+                cmd = core.on_frame(msg.arbitration_id, msg.data, msg.is_remote_frame, t)
+                if cmd is CmdId.GET_ENCODER_ESTIMATES:
+                    core.integrate_to(t)
+                    answer, _ = core.estimates()
+                    core.stats.rtr_answered += 1
+                frames = core.take_outgoing()
+            for aid, data in frames:
+                self._send(aid, data)
+            if answer is not None:
+                self._send(core.estimates_id, answer)
+
+    def _send(self, arbitration_id: int, payload: bytes) -> None:
+        if self.core.silent:
+            with self._lock:
+                self.core.stats.frames_suppressed += 1
+            return
+        msg = can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
+        with self._send_lock:
+            try:
+                self.bus.send(msg)
+            except can.CanError:
+                with self._lock:
+                    self.core.stats.send_failures += 1
+                return
+        if arbitration_id == self.core.estimates_id:
+            with self._lock:
+                self.core.stats.feedback_sent += 1

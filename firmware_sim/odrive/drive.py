@@ -1,0 +1,139 @@
+"""``SimulatedOdrive``: the simulated ODrive on a python-can bus, lockstep or real time.
+
+It follows the :class:`~dob_hil.profiles.base.SimulatedCounterpart` protocol, so the session
+drives it like the native simulated drive. The drive does not own the bus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from types import TracebackType
+from typing import Literal
+
+import can
+
+from dob_hil.config import Config
+from dob_hil.link.odrive.codec import AxisState
+from firmware_sim.odrive.clocks import OdriveLockstep, OdriveRealtime
+from firmware_sim.odrive.core import OdriveStats, TruthSink
+
+ClockKind = Literal["lockstep", "realtime"]
+
+
+class SimulatedOdrive:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        *,
+        clock: ClockKind = "lockstep",
+        truth_sink: TruthSink | None = None,
+        spin_ns: int = 0,
+    ) -> None:
+        self.config = config
+        self.clock: ClockKind = clock
+        self._lockstep: OdriveLockstep | None = None
+        self._realtime: OdriveRealtime | None = None
+        if clock == "lockstep":
+            self._lockstep = OdriveLockstep(bus, config, truth_sink)
+        elif clock == "realtime":
+            self._realtime = OdriveRealtime(bus, config, truth_sink, spin_ns=spin_ns)
+        else:
+            raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
+        self._closed = False
+
+    # --- lockstep ------------------------------------------------------------------------------
+    def service(self) -> int:
+        return self._need_lockstep("service").service()
+
+    def advance_period(self) -> None:
+        self._need_lockstep("advance_period").advance_period()
+
+    def _need_lockstep(self, what: str) -> OdriveLockstep:
+        if self._lockstep is None:
+            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
+        return self._lockstep
+
+    # --- real time -----------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._realtime is not None:
+            self._realtime.start()
+
+    def stop(self) -> None:
+        if self._realtime is not None:
+            self._realtime.stop()
+
+    def check(self) -> None:
+        if self._realtime is not None:
+            self._realtime.check()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
+
+    def __enter__(self) -> SimulatedOdrive:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        with contextlib.suppress(Exception):
+            self.close()
+
+    # --- read-out ------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self._realtime is not None and self._realtime.running
+
+    @property
+    def enabled(self) -> bool:
+        """The axis is in CLOSED_LOOP_CONTROL (its power stage applies current)."""
+        if self._realtime is not None:
+            return self._realtime.snapshot()[0]
+        assert self._lockstep is not None
+        return self._lockstep.core.closed_loop
+
+    @property
+    def axis_state(self) -> AxisState:
+        return AxisState.CLOSED_LOOP_CONTROL if self.enabled else AxisState.IDLE
+
+    state = axis_state  # what the standalone drive reports on stopping
+
+    @property
+    def axis_error(self) -> int:
+        core = self._realtime.core if self._realtime is not None else self._need_lockstep("axis_error").core
+        return core.axis_error
+
+    @property
+    def period_index(self) -> int:
+        if self._realtime is not None:
+            return self._realtime.snapshot()[1]
+        assert self._lockstep is not None
+        return self._lockstep.core.period_index
+
+    @property
+    def true_state(self) -> tuple[float, ...]:
+        if self._realtime is not None:
+            return self._realtime.snapshot()[2]
+        assert self._lockstep is not None
+        return self._lockstep.core.plant.state
+
+    @property
+    def time_ns(self) -> int:
+        if self._realtime is not None:
+            return self._realtime.snapshot()[3]
+        assert self._lockstep is not None
+        return self._lockstep.core.time_ns
+
+    @property
+    def stats(self) -> OdriveStats:
+        if self._realtime is not None:
+            return self._realtime.snapshot()[4]
+        assert self._lockstep is not None
+        return OdriveStats(**vars(self._lockstep.core.stats))
