@@ -6,6 +6,9 @@ frames and one ground-truth record; noisy floats), same run:
 - ``read_log`` of the whole log, and of the sample channel only (samples/s, median of repeats);
 - the analysis metrics: ``dob_hil.analysis`` ``load_log`` + ``derive_signals`` +
   ``compute_metrics`` (what ``dob-hil analyze --no-plots`` computes), samples/s;
+- the mcap library's plain reader (``make_reader(f).iter_messages()``, no decoding) over every
+  message of the same log, timed in the same run: ``ratio_read_log_vs_mcap_plain`` is read_log's
+  messages/s over the plain reader's (goal > 20);
 - baselines decoding the same samples message by message: the mcap library's iteration with
   the ros2 (CDR) decoder of ``mcap-ros2-support`` on this log, and the mcap library's iteration
   + ``json.loads`` on a JSON-encoded MCAP of the same sample values (both on at most
@@ -15,10 +18,16 @@ frames and one ground-truth record; noisy floats), same run:
 as ``<cache-dir>/synthetic-<N>.mcap``), analysed by ``dob-hil analyze --no-plots --json`` and read
 by ``read_log`` alone, each in a child process whose peak RSS comes from ``os.wait4``.
 
-Goals: read >= 1,000,000 samples/s; analysing the 1-hour log in <= 2 GB.
+``--verify LOG`` (a real run's log: replay needs its design): ``dob-hil replay LOG --verify`` in a
+child process (wall time, peak RSS), and the streamed verification alone in this process
+(samples/s without the interpreter's start).
+
+Goals: read >= 1,000,000 samples/s and > 20x the mcap plain reader; analysing the 1-hour log in
+<= 2 GB; ``replay --verify`` >= 500,000 samples/s in a memory independent of the log's length.
 
     .venv/bin/python benchmarks/bench_analysis.py [--smoke] [--json] [--samples N]
     .venv/bin/python benchmarks/bench_analysis.py --hour [--hour-samples N] [--cache-dir DIR]
+    .venv/bin/python benchmarks/bench_analysis.py --verify LOG.mcap
 """
 
 from __future__ import annotations
@@ -121,6 +130,55 @@ def write_json_mcap(path: Path, samples: np.ndarray[Any, Any]) -> None:
         w.finish()  # type: ignore[no-untyped-call]
 
 
+def plain_baseline(path: Path, limit: int) -> tuple[int, float]:
+    """The mcap library's plain reader: every message, not decoded (at most ``limit``)."""
+    from mcap.reader import make_reader
+
+    count = 0
+    t0 = time.perf_counter()
+    with path.open("rb") as f:
+        for _item in make_reader(f).iter_messages():
+            count += 1
+            if count >= limit:
+                break
+    return count, time.perf_counter() - t0
+
+
+def verify_child(path: Path) -> dict[str, Any]:
+    """replay --verify of a real log: the command in a child (wall, peak RSS), and in process."""
+    from dob_hil.analysis.loaded import load_log
+    from dob_hil.analysis.verify_fast import verify_streaming
+    from dob_hil.log.schemas import TOPIC_EVENT
+
+    child = child_peak([*dob_hil_command(), "replay", str(path), "--verify", "--json"])
+    t0 = time.perf_counter()
+    log = load_log(path, topics=[TOPIC_EVENT])
+    t1 = time.perf_counter()
+    result = verify_streaming(log)
+    t2 = time.perf_counter()
+    if result is None or not result.identical:
+        raise RuntimeError(f"{path}: not verified identical by the streamed path")
+    from dob_hil.analysis.replay import verify
+
+    full = load_log(path)
+    t3 = time.perf_counter()
+    chained = verify(full)
+    t4 = time.perf_counter()
+    del full
+    return {
+        "log": str(path),
+        "samples": result.samples,
+        "file_MB": round(path.stat().st_size / 1e6, 1),
+        "command": child,
+        "command_samples_per_s": round(result.samples / child["seconds"]),
+        "streamed_verify_samples_per_s": round(result.samples / (t2 - t1)),
+        "events_and_metadata_read_s": round(t1 - t0, 2),
+        "chained_verify_samples_per_s": round(chained.samples / (t4 - t3)),
+        "speedup_streamed_vs_chained": round((t4 - t3) / (t2 - t1), 1),
+        "goal_ge_500k_per_s_met": result.samples / (t2 - t1) >= 500_000,
+    }
+
+
 def json_baseline(path: Path) -> tuple[int, float]:
     from mcap.reader import make_reader
 
@@ -161,6 +219,7 @@ def throughput(args: Any) -> dict[str, Any]:
             analysis["seconds"] = round(t_an, 3)
             analysis["metrics_samples"] = metrics["samples"]
         ros2_n, ros2_s = ros2_baseline(path, args.baseline_samples)
+        plain_n, plain_s = plain_baseline(path, 4 * args.baseline_samples)
         json_path = tmp / "samples-json.mcap"
         write_json_mcap(json_path, some)
         json_n, json_s = json_baseline(json_path)
@@ -168,7 +227,9 @@ def throughput(args: Any) -> dict[str, Any]:
         "mcap_iter_ros2_decoder": round(ros2_n / ros2_s),
         "mcap_iter_json_loads": round(json_n / json_s),
         "messages_each": min(ros2_n, json_n),
+        "mcap_plain_reader_messages_per_s": round(plain_n / plain_s),
     }
+    messages_per_sample = 4  # sample, two frames, truth
     out.update(
         {
             "read_log_samples_per_s": read,
@@ -176,6 +237,9 @@ def throughput(args: Any) -> dict[str, Any]:
             "baseline_samples_per_s": baseline,
             "speedup_read_log_vs_json": round(read["all_channels"] / baseline["mcap_iter_json_loads"], 1),
             "speedup_read_log_vs_ros2": round(read["all_channels"] / baseline["mcap_iter_ros2_decoder"], 1),
+            "ratio_read_log_vs_mcap_plain": round(
+                read["all_channels"] * messages_per_sample / baseline["mcap_plain_reader_messages_per_s"], 1
+            ),
             "goal_read_ge_1M_per_s_met": read["all_channels"] >= READ_GOAL_PER_S,
         }
     )
@@ -237,7 +301,11 @@ def main() -> None:
     p.add_argument("--hour", action="store_true", help="the 1-hour (12 M samples) memory benchmark instead")
     p.add_argument("--hour-samples", type=int, default=12_000_000, help="samples of the --hour log")
     p.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="where generated logs are kept")
+    p.add_argument("--verify", type=Path, metavar="LOG", help="replay --verify throughput and memory on LOG")
     args = p.parse_args()
+    if args.verify:
+        report("analysis: replay --verify", verify_child(args.verify), args.json)
+        return
     if args.hour:
         result = hour(args)
         name = "analysing a 1-hour log: peak RSS"

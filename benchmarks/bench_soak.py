@@ -119,7 +119,7 @@ def main() -> None:
         channel = udp_channel()
     except Unavailable as exc:
         skip(str(exc))
-    node_id = random.randint(2, 126)
+    node_id = random.randint(2, 15)  # the native protocol has nodes 0..15
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp_name:
         tmp = Path(tmp_name)
         patience = args.patience_periods

@@ -1,9 +1,16 @@
 """The standalone simulated drive: ``python -m firmware_sim CONFIG [bus options] [--duration S]``.
 
 Runs the drive on its real-time clock on any python-can bus until SIGINT/SIGTERM or
-``--duration`` seconds. Exit status 0 on a clean stop, 2 with one line on stderr for a bad
-config or bad arguments, 1 with one line for a bus that cannot be opened or a drive thread
-that failed.
+``--duration`` seconds. Exit status 0 on a clean stop (a signal is a clean stop; a second one
+during the stop ends it at once), 2 with one line on stderr for a bad config or bad arguments,
+1 with one line for a bus that cannot be opened or a drive thread that failed. A frame the bus
+cannot deliver (a stray datagram on the udp_multicast port) is counted, not fatal; a diverging
+plant is a FAULT (ENCODER), not a crash.
+
+Spinning: by default (``--spin-us auto``) the drive busy-waits the last 100 us before each
+deadline only when it runs under SCHED_FIFO pinned to CPUs of its own (``--sched-fifo --cpu N``,
+both granted), and sleeps otherwise: on a shared CPU a spin takes time another process needs.
+Even then the spin yields the CPU on every turn.
 """
 
 from __future__ import annotations
@@ -20,15 +27,18 @@ from typing import Any
 
 import can
 
-from dob_hil.config import load_config
-from dob_hil.errors import DobHilError
+from dob_hil.config import Config, load_config
+from dob_hil.errors import ConfigError, DobHilError
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
+from firmware_sim.behaviour import VARIANTS
+from firmware_sim.cia402 import SimulatedCia402Drive
 from firmware_sim.drive import SimulatedDrive
 from firmware_sim.plant import check_single_axis
 from firmware_sim.process import READY_TEXT
 from firmware_sim.truth import UdpTruthSender
 
 PROG = "firmware_sim"
+AUTO_SPIN_US = 100.0  # --spin-us auto, under SCHED_FIFO on CPUs of its own
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,9 +60,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cpu", type=int, action="append", help="pin the drive to this CPU (repeatable)")
     p.add_argument(
         "--spin-us",
-        type=float,
-        default=100.0,
-        help="busy-wait this long before each deadline for timing precision (default 100; 0 = sleep only)",
+        default="auto",
+        help=f"busy-wait (yielding) this long before each deadline for timing precision; 0 = sleep only; "
+        f"default auto: {AUTO_SPIN_US:g} under --sched-fifo with --cpu (both granted), else 0",
+    )
+    p.add_argument(
+        "--watchdog-periods",
+        type=int,
+        help="override drive.watchdog_periods: periods without a valid command before a WATCHDOG fault",
+    )
+    p.add_argument(
+        "--variant",
+        choices=sorted(VARIANTS),
+        default="reference",
+        help="drive behaviour: a variant PROTOCOL.md permits or a deliberate violation "
+        "(for testing hosts and the conformance kit; default reference)",
     )
     return p
 
@@ -63,9 +85,38 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         build_parser().error(f"--duration must be > 0, got {args.duration}")
     if args.truth_port is not None and not 1 <= args.truth_port <= 65535:
         build_parser().error(f"--truth-port must be 1..65535, got {args.truth_port}")
-    if not args.spin_us >= 0:
-        build_parser().error(f"--spin-us must be >= 0, got {args.spin_us}")
+    if args.spin_us != "auto":
+        try:
+            args.spin_us = float(args.spin_us)
+        except ValueError:
+            build_parser().error(f"--spin-us must be a number of microseconds or auto, got {args.spin_us!r}")
+        if not 0 <= args.spin_us < 1e6:
+            build_parser().error(f"--spin-us must be 0..999999, got {args.spin_us}")
+    if args.watchdog_periods is not None and not 1 <= args.watchdog_periods <= 1_000_000:
+        build_parser().error(f"--watchdog-periods must be 1..1000000, got {args.watchdog_periods}")
     return args
+
+
+def _with_overrides(config: Config, args: argparse.Namespace) -> Config:
+    if args.watchdog_periods is None:
+        return config
+    import dataclasses
+
+    drive = dataclasses.replace(config.drive, watchdog_periods=args.watchdog_periods)
+    return dataclasses.replace(config, drive=drive)
+
+
+def _variant_text(variant: str) -> str:
+    return "" if variant == "reference" else f", variant {variant}"
+
+
+def _spin_ns(args: argparse.Namespace, applied: list[str]) -> int:
+    """--spin-us in ns; auto: spin only under SCHED_FIFO on CPUs of its own, both granted."""
+    if args.spin_us != "auto":
+        return round(float(args.spin_us) * 1000)
+    fifo = any(a.startswith("SCHED_FIFO") for a in applied)
+    pinned = any(a.startswith("CPU affinity") for a in applied)
+    return round(AUTO_SPIN_US * 1000) if fifo and pinned and args.cpu else 0
 
 
 def _fail(status: int, message: str) -> int:
@@ -76,7 +127,7 @@ def _fail(status: int, message: str) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        config = load_config(args.config)
+        config = _with_overrides(load_config(args.config), args)
         bus_kwargs: dict[str, Any] = {}
         for key in ("interface", "channel", "bitrate"):
             if getattr(args, key) is not None:
@@ -92,24 +143,40 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
+        if stop.is_set():  # a second signal while stopping: stop at once
+            raise KeyboardInterrupt
         stop.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     sink = UdpTruthSender(args.truth_port) if args.truth_port is not None else None
     status = 0
     try:
-        drive = SimulatedDrive(
-            bus, config, clock="realtime", truth_sink=sink, spin_ns=round(args.spin_us * 1000)
-        )
         gc.freeze()  # long-lived objects out of the collector's way (gen-2 pauses of several ms)
         # OS plumbing only (no controller code): the drive's threads inherit these settings
         rt = apply_rt_settings(RtSettings(sched_fifo=args.sched_fifo, cpus=tuple(args.cpu or ())))
         for refused in rt.refused:
             print(f"{PROG}: warning: {refused}", file=sys.stderr, flush=True)
+        spin_ns = _spin_ns(args, rt.applied)
+        drive: SimulatedDrive | SimulatedCia402Drive
+        try:
+            if config.drive.profile == "cia402":  # the host's SYNC is this drive's clock: no timer to spin
+                drive = SimulatedCia402Drive(bus, config, clock="realtime", truth_sink=sink)
+            else:
+                drive = SimulatedDrive(
+                    bus,
+                    config,
+                    clock="realtime",
+                    truth_sink=sink,
+                    spin_ns=spin_ns,
+                    behaviour=VARIANTS[args.variant],
+                )
+        except (ValueError, ArithmeticError) as exc:  # a config value the simulation cannot hold
+            raise ConfigError("config", f"{args.config}: the simulated drive cannot run it: {exc}") from None
         drive.start()
         print(
             f"{PROG}: node {config.drive.node_id} on {bus.channel_info}, "
-            f"period {config.plant.period_ns / 1000:g} us; {READY_TEXT}",
+            f"period {config.plant.period_ns / 1000:g} us, watchdog {config.drive.watchdog_periods} periods, "
+            f"spin {spin_ns / 1000:g} us{_variant_text(args.variant)}; {READY_TEXT}",
             file=sys.stderr,
             flush=True,
         )
@@ -122,15 +189,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                 drive.check()
         finally:
             drive.close()
-        stats = drive.stats
-        print(
-            f"{PROG}: stopped after {stats.samples} samples "
-            f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
-            f"{stats.commands_accepted} commands, {stats.overruns} overruns)",
-            file=sys.stderr,
-        )
+        if isinstance(drive, SimulatedCia402Drive):
+            print(f"{PROG}: stopped: {drive.stats}", file=sys.stderr)
+        else:
+            stats = drive.stats
+            print(
+                f"{PROG}: stopped after {stats.samples} samples "
+                f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "
+                f"{stats.commands_accepted} commands, {stats.overruns} overruns, "
+                f"{stats.rx_errors} undeliverable frames, final state {drive.state.name})",
+                file=sys.stderr,
+            )
     except DobHilError as exc:
         status = _fail(2, str(exc))
+    except KeyboardInterrupt:
+        status = _fail(130, "stopped by a second signal while stopping")
     except Exception as exc:
         status = _fail(1, f"drive stopped: {type(exc).__name__}: {exc}")
     finally:

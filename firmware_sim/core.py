@@ -7,26 +7,36 @@ a feedback sample with :meth:`DriveCore.sample`. Frames the firmware sends on it
 HEARTBEAT) queue up for :meth:`DriveCore.take_outgoing`. Times are simulated nanoseconds
 since the simulation started.
 
-Behaviour (the firmware's contract):
+Behaviour: the drive side of ``docs/PROTOCOL.md`` (version 2); the section names below are its.
 
-* CONTROL requests drive the state machine (:mod:`firmware_sim.state_machine`); every CONTROL
-  frame is answered by a HEARTBEAT with the resulting state (a refused enable in FAULT says
-  FAULT). Leaving ENABLED zeroes the current at once. Heartbeats also go out every 100 ms.
+* CONTROL requests of our protocol version drive the state machine
+  (:mod:`firmware_sim.state_machine`); every CONTROL frame is answered by a HEARTBEAT with the
+  resulting state and the drive's version (a refused enable in FAULT says FAULT; a request of
+  another version is not acted on). Leaving ENABLED zeroes the current at once. Heartbeats also
+  go out every 100 ms.
 * A COMMAND is *valid* if it answers a feedback sequence within the acceptance window (the last
   sample in lockstep; the last ``min(watchdog_periods, 64)`` samples, at least 2, in real time)
   newer than the last accepted one: a late command still acts, a duplicate or older one is stale.
   Only valid commands feed the watchdog. While ENABLED the DAC code is
   clamped at the limit (status SATURATED) and acts ``input_delay_samples`` periods later. A
-  command with the enable bit clear commands zero current; the drive **stays ENABLED** (the bit
-  gates the current, the CONTROL frame owns the state). Commands while DISABLED or in FAULT
-  apply nothing.
-* A frame with our COMMAND/CONTROL id that does not decode (wrong DLC, unknown request) faults
-  the drive: FAULT frame ``BAD_FRAME`` with the id's low byte.
-* The watchdog counts periods while ENABLED; the ``watchdog_periods``-th period in a row without
-  a valid command faults the drive: FAULT frame ``WATCHDOG`` (info = periods, capped at 255) and
-  status FAULT|WATCHDOG until CLEAR_FAULT.
-* A non-finite plant position (a diverging plant) faults the drive with ``ENCODER``.
-* A FAULT frame is sent only when the drive enters FAULT, followed by a HEARTBEAT.
+  command with the enable bit clear commands zero current, valid or stale (a stop is never
+  stale); the drive **stays ENABLED** (the bit gates the current, the CONTROL frame owns the
+  state). Commands while DISABLED or in FAULT apply nothing.
+* A frame with our COMMAND/CONTROL id that does not decode (too short, unknown request) faults
+  the drive: FAULT frame ``BAD_FRAME`` with the id's low byte. Frames padded to 8 bytes decode.
+* The watchdog is armed by the first valid command after entering ENABLED; armed, the
+  ``watchdog_periods``-th period in a row without a valid command faults the drive: FAULT frame
+  ``WATCHDOG`` (info = periods, capped at 255) and status FAULT|WATCHDOG until CLEAR_FAULT. Not
+  armed, it allows :data:`FIRST_COMMAND_TIMEOUT_NS` (at least ``2 watchdog_periods``), then faults
+  ``WATCHDOG`` with info 0.
+* A plant position the encoder cannot represent (non-finite, or the physics overflowing) faults
+  the drive with ``ENCODER``.
+* Disturbances start at the first enable (their t = 0), so every run starts from rest.
+* :class:`~firmware_sim.behaviour.DriveBehaviour` selects the variants the spec permits
+  (sequence restart on enable, FAULT on a COMMAND while DISABLED, padded frames) and two
+  deliberate violations.
+* A FAULT frame is sent when the drive enters FAULT, followed by a HEARTBEAT, and again before
+  every periodic HEARTBEAT while in FAULT (a host started later learns the code and info).
 * Injected faults (``[sim.faults]``, :mod:`firmware_sim.faults`): a FAULT at period N, silence
   from period N (:attr:`DriveCore.silent`: the clocks send nothing), an encoder jump at period N.
 * FEEDBACK status: ENABLED, SATURATED (the last applied command was clamped), FAULT, WATCHDOG
@@ -41,10 +51,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from dob_hil.config import Config
-from dob_hil.errors import ProtocolError
+from dob_hil.errors import ConfigError, ProtocolError
 from dob_hil.link.protocol import (
     COMMAND_SEQ_MODULO,
     DLC,
+    HEARTBEAT_PERIOD_NS,
+    MAX_PADDED_LEN,
     SEQ_MODULO,
     ControlRequest,
     DriveState,
@@ -62,6 +74,7 @@ from dob_hil.link.protocol import (
     frame_id,
 )
 from firmware_sim.actuator import CurrentPath
+from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.dac import Dac
 from firmware_sim.disturbance import Disturbance
 from firmware_sim.encoder import Encoder
@@ -71,8 +84,9 @@ from firmware_sim.state_machine import DriveStateMachine
 from firmware_sim.truth import GroundTruth
 from firmware_sim.watchdog import CommandWatchdog
 
-HEARTBEAT_PERIOD_NS = 100_000_000  # 10 Hz
 REALTIME_ACCEPT_WINDOW_MAX = 64  # half the 7-bit command sequence space
+FIRST_COMMAND_TIMEOUT_NS = 1_000_000_000  # enabled without a first valid command: WATCHDOG (info 0)
+_PADDING = bytes(MAX_PADDED_LEN)
 _COMMAND_STRUCT = struct.Struct("<hB")  # protocol.COMMAND: i16 current, u8 seq7 | enable << 7
 _COMMAND_DLC = DLC[FrameKind.COMMAND]
 _FEEDBACK_STRUCT = struct.Struct("<iBB")  # protocol.FEEDBACK: i32 counts, u8 seq, u8 status
@@ -109,32 +123,54 @@ class DriveStats:
     overruns: int = 0  # real time: sample instants skipped because the timer fell behind
     send_failures: int = 0
     frames_suppressed: int = 0  # not sent because the drive is silent ([sim.faults] silent_at_s)
+    rx_errors: int = 0  # frames the bus could not deliver (bus.recv raised)
+    version_mismatches: int = 0  # CONTROL requests of another protocol version, not acted on
+    stops: int = 0  # COMMANDs with the enable bit clear acted on while ENABLED
 
 
 class DriveCore:
-    def __init__(self, config: Config, *, accept_window: int, want_truth: bool) -> None:
+    def __init__(
+        self,
+        config: Config,
+        *,
+        accept_window: int,
+        want_truth: bool,
+        behaviour: DriveBehaviour = REFERENCE,
+    ) -> None:
         check_single_axis(config.plant)
+        self.behaviour = behaviour
+        self.version = behaviour.protocol_version
         drive, sim, plant = config.drive, config.sim, config.plant
         self.node_id = drive.node_id
-        self.command_id = frame_id(FrameKind.COMMAND, drive.node_id)
+        try:
+            self.command_id = frame_id(FrameKind.COMMAND, drive.node_id)
+        except ProtocolError as exc:
+            raise ConfigError("drive.node_id", str(exc).removeprefix("node_id: ")) from None
         self.control_id = frame_id(FrameKind.CONTROL, drive.node_id)
         self.period_ns = plant.period_ns
         self.delay_ns = plant.input_delay_samples * plant.period_ns
         self.accept_window = accept_window
         self.want_truth = want_truth
         self.disturbance = Disturbance(sim.disturbances, plant.period_s / sim.substeps)
+        self.disturbance.origin_s = None  # zero until the first enable
         self.plant = PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
         self.dac = Dac(drive.dac_lsb_A, drive.current_limit_A)
         self.encoder = Encoder(
             drive.encoder_counts_per_unit, drive.encoder_bits, sim.noise_counts_std, sim.seed
         )
         self.machine = DriveStateMachine()
-        self.watchdog = CommandWatchdog(drive.watchdog_periods)
+        self.watchdog = CommandWatchdog(
+            drive.watchdog_periods, -(-FIRST_COMMAND_TIMEOUT_NS // plant.period_ns)
+        )
         self.path = CurrentPath()
         self.stats = DriveStats()
         self.time_ns = 0  # the physics has been integrated up to here
         self.saturated = False  # the last applied command was clamped
-        self._samples = 0  # feedback samples taken; the sequence is this mod 256
+        self._samples = 0  # feedback samples taken; the sequence is (this - _seq_origin) mod 256
+        self._seq_origin = 0  # sample number of sequence 0 (moves on enable with restart_sequence)
+        self._physics_ok = True  # False once the physics overflowed (ENCODER fault)
+        self._fault_payload = b""  # the FAULT frame of the current fault
+        self._pad = behaviour.pad_frames
         self._last_accepted = -1  # sample number answered by the last valid command
         self._next_heartbeat_ns = HEARTBEAT_PERIOD_NS
         self._out: list[OutgoingFrame] = []
@@ -153,11 +189,16 @@ class DriveCore:
     @property
     def last_seq(self) -> int | None:
         """The sequence number of the last feedback sample, None before the first."""
-        return (self._samples - 1) % SEQ_MODULO if self._samples else None
+        return (self._samples - 1 - self._seq_origin) % SEQ_MODULO if self._samples else None
 
     def take_outgoing(self) -> list[OutgoingFrame]:
         out, self._out = self._out, []
+        if self._pad:
+            return [(kind, payload + _PADDING[len(payload) :]) for kind, payload in out]
         return out
+
+    def _heartbeat(self, state: DriveState) -> OutgoingFrame:
+        return FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(state, self.version))
 
     # --- frames --------------------------------------------------------------------------------
     def on_frame(self, arbitration_id: int, data: bytes | bytearray, t_ns: int) -> FrameResult:
@@ -173,10 +214,14 @@ class DriveCore:
             return self._on_command(cmd.current_counts, cmd.seq, cmd.enable, t_ns)
         if arbitration_id == self.control_id:
             try:
-                request = decode_control(data).request
+                control = decode_control(data)
             except ProtocolError:
                 return self._bad_frame(arbitration_id, t_ns)
-            self._on_control(request, t_ns)
+            if control.version != self.version:  # not acted on; the heartbeat names our version
+                self.stats.version_mismatches += 1
+                self._out.append(self._heartbeat(self.machine.state))
+                return FrameResult.CONTROL
+            self._on_control(control.request, t_ns)
             return FrameResult.CONTROL
         self.stats.frames_ignored += 1
         return FrameResult.IGNORED
@@ -185,15 +230,20 @@ class DriveCore:
         last = self._samples - 1
         if last < 0:
             return None
-        s = last - ((last - seq7) % COMMAND_SEQ_MODULO)
+        s = last - ((last - self._seq_origin - seq7) % COMMAND_SEQ_MODULO)
         if last - s >= self.accept_window or s <= self._last_accepted:
             return None
         return s
 
     def _on_command(self, current_counts: int, seq7: int, enable: bool, t_ns: int) -> FrameResult:
+        state = self.machine.state
+        if state is DriveState.DISABLED and self.behaviour.fault_on_command_while_disabled:
+            self.fault(FaultCode.COMMAND_WHILE_DISABLED, 0, t_ns)
         s = self._answered_sample(seq7)
         if s is None:
             self.stats.commands_stale += 1
+            if not enable and state is DriveState.ENABLED and not self.behaviour.stale_stop_ignored:
+                self._stop(t_ns)  # a stop is never stale (it does not feed the watchdog)
             return FrameResult.STALE_COMMAND
         self._last_accepted = s
         self.stats.commands_accepted += 1
@@ -203,9 +253,15 @@ class DriveCore:
                 if self.saturated:
                     self.stats.saturations += 1
             else:
-                applied_A, self.saturated = 0.0, False
+                self._stop(t_ns)
+                return FrameResult.COMMAND
             self.path.schedule(t_ns + self.delay_ns, applied_A)
         return FrameResult.COMMAND
+
+    def _stop(self, t_ns: int) -> None:
+        self.stats.stops += 1
+        self.saturated = False
+        self.path.schedule(t_ns + self.delay_ns, 0.0)
 
     def _on_control(self, request: ControlRequest, t_ns: int) -> None:
         before = self.machine.state
@@ -216,9 +272,15 @@ class DriveCore:
         elif after is DriveState.ENABLED and before is not DriveState.ENABLED:
             self.watchdog.reset()
             self.saturated = False
+            if self.disturbance.origin_s is None:  # the first enable: disturbances start now
+                self.disturbance.origin_s = self.time_ns * 1e-9
+                self.plant.disturbance_changed()
+            if self.behaviour.restart_sequence_on_enable:
+                self._seq_origin = self._samples
+                self._last_accepted = self._samples - 1
             if self.faults is not None:
                 self.faults.on_enabled(self.time_ns // self.period_ns)
-        self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(after))))
+        self._out.append(self._heartbeat(after))
 
     def _bad_frame(self, arbitration_id: int, t_ns: int) -> FrameResult:
         self.stats.bad_frames += 1
@@ -233,8 +295,9 @@ class DriveCore:
         if was_enabled:
             self.path.cut(t_ns)
         self.saturated = False
-        self._out.append((FrameKind.FAULT, encode_fault(FaultFrame(code, min(info, 255)))))
-        self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(DriveState.FAULT))))
+        self._fault_payload = encode_fault(FaultFrame(code, min(info, 255)))
+        self._out.append((FrameKind.FAULT, self._fault_payload))
+        self._out.append(self._heartbeat(DriveState.FAULT))
 
     # --- time ----------------------------------------------------------------------------------
     def integrate_to(self, t_ns: int) -> None:
@@ -243,6 +306,19 @@ class DriveCore:
         A change due exactly at ``t_ns`` is applied by the next call, so at a sample instant
         :attr:`CurrentPath.held_A` is the current that acted just before it.
         """
+        if not self._physics_ok:
+            self.time_ns = max(self.time_ns, t_ns)
+            return
+        try:
+            self._integrate_to(t_ns)
+        except (OverflowError, ValueError, FloatingPointError):
+            # the physics left the float range (a diverging or absurd plant): the position can no
+            # longer be measured, as an encoder that lost track; the state is frozen from here
+            self._physics_ok = False
+            self.fault(FaultCode.ENCODER, 0, self.time_ns)
+            self.time_ns = max(self.time_ns, t_ns)
+
+    def _integrate_to(self, t_ns: int) -> None:
         path, plant = self.path, self.plant
         t = self.time_ns
         if t < t_ns:
@@ -264,9 +340,11 @@ class DriveCore:
         if self.faults is not None:
             self.faults.on_period(self, self.time_ns // self.period_ns)
         if self.machine.state is DriveState.ENABLED and self.watchdog.period_elapsed(commanded):
-            self.fault(FaultCode.WATCHDOG, self.watchdog.missed, self.time_ns)
+            self.fault(FaultCode.WATCHDOG, self.watchdog.info, self.time_ns)
         if self.time_ns >= self._next_heartbeat_ns:
-            self._out.append((FrameKind.HEARTBEAT, encode_heartbeat(HeartbeatFrame(self.machine.state))))
+            if self.machine.state is DriveState.FAULT:  # repeated, so a host started later learns it
+                self._out.append((FrameKind.FAULT, self._fault_payload))
+            self._out.append(self._heartbeat(self.machine.state))
             while self._next_heartbeat_ns <= self.time_ns:
                 self._next_heartbeat_ns += HEARTBEAT_PERIOD_NS
 
@@ -275,7 +353,7 @@ class DriveCore:
         state = self.machine.state
         try:
             counts = self.encoder.read(self.plant.position())
-        except ValueError:
+        except (ValueError, OverflowError):
             self.fault(FaultCode.ENCODER, 0, self.time_ns)
             state, counts = self.machine.state, 0
         if self.faults is not None:
@@ -286,13 +364,15 @@ class DriveCore:
             status = _ST_FAULT_WATCHDOG if self.machine.fault_code is FaultCode.WATCHDOG else _ST_FAULT
         else:
             status = _ST_OFF
-        seq = self._samples % SEQ_MODULO
+        seq = (self._samples - self._seq_origin) % SEQ_MODULO
         self._samples += 1
         self.stats.samples += 1
         try:  # the codec's layout packed directly (per period); the codec names a bad value
             payload = _FEEDBACK_STRUCT.pack(counts, seq, status)
         except struct.error:
             payload = encode_feedback(FeedbackFrame(counts, seq, status))
+        if self._pad:
+            payload += _PADDING[len(payload) :]
         if not self.want_truth:
             return payload, None
         t = self.time_ns

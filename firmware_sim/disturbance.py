@@ -9,6 +9,11 @@ Each ``[[sim.disturbance]]`` entry is zero before its ``start_s`` and then
   only on ``(seed, i)``, so :meth:`Disturbance.value_A` is a pure function of time: the same
   seed gives the same noise whatever order or rate it is read in.
 
+Time ``t`` is counted from :attr:`Disturbance.origin_s` (default 0); with ``origin_s = None`` the
+disturbance is zero everywhere. The drive sets the origin when it is first enabled, so a run starts
+from rest whatever clock the drive runs on (PROTOCOL.md leaves disturbances out: they are the
+simulation's, not the protocol's).
+
 The paper's disturbances are ``0.2 sin(8 pi t)`` (frequency 4 Hz) and
 ``0.2 sin(8 pi t) + 0.1 sin(24 pi t)`` (4 Hz and 12 Hz).
 """
@@ -83,9 +88,15 @@ class Disturbance:
             else:
                 raise ValueError(f"unknown disturbance kind {e.kind!r}")
         self.is_zero = not (self._sines or self._steps or self._noises)
+        self.origin_s: float | None = 0.0  # t = 0 of every entry, in the caller's seconds
 
     def value_A(self, t_s: float) -> float:
-        """The disturbance current at time ``t_s`` (seconds since the simulation started)."""
+        """The disturbance current at time ``t_s`` (seconds of the caller's clock; see origin_s)."""
+        origin = self.origin_s
+        if origin is None:
+            return 0.0
+        if origin:
+            t_s -= origin
         v = 0.0
         for a, w, p, start in self._sines:
             if t_s >= start:
@@ -101,6 +112,10 @@ class Disturbance:
         """:meth:`value_A` at every element of ``t_s`` (vectorised; equal to within rounding)."""
         t = np.asarray(t_s, dtype=np.float64)
         v = np.zeros_like(t)
+        if self.origin_s is None:
+            return v
+        if self.origin_s:
+            t = t - self.origin_s
         for a, w, p, start in self._sines:
             v += np.where(t >= start, a * np.sin(w * t + p), 0.0)
         for a, start in self._steps:

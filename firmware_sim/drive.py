@@ -29,6 +29,7 @@ import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState
+from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import DriveStats, TruthSink
 from firmware_sim.lockstep import LockstepClock
 from firmware_sim.realtime import RealtimeClock
@@ -45,17 +46,19 @@ class SimulatedDrive:
         clock: ClockKind = "lockstep",
         truth_sink: TruthSink | None = None,
         spin_ns: int = 0,
+        behaviour: DriveBehaviour = REFERENCE,
     ) -> None:
-        """``spin_ns`` (real time only): busy-wait this long before each deadline. Leave 0 when
-        another thread of the same process must run (a spinning thread holds the GIL)."""
+        """``spin_ns`` (real time only): busy-wait (yielding) this long before each deadline.
+        ``behaviour``: a variant PROTOCOL.md permits, or a deliberate violation
+        (:mod:`firmware_sim.behaviour`); default the reference drive."""
         self.config = config
         self.clock: ClockKind = clock
         self._lockstep: LockstepClock | None = None
         self._realtime: RealtimeClock | None = None
         if clock == "lockstep":
-            self._lockstep = LockstepClock(bus, config, truth_sink)
+            self._lockstep = LockstepClock(bus, config, truth_sink, behaviour)
         elif clock == "realtime":
-            self._realtime = RealtimeClock(bus, config, truth_sink, spin_ns=spin_ns)
+            self._realtime = RealtimeClock(bus, config, truth_sink, spin_ns=spin_ns, behaviour=behaviour)
         else:
             raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
         self._closed = False

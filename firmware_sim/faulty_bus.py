@@ -14,7 +14,8 @@ each decided with its own seeded random stream (so enabling one fault does not r
   one (reordered), ``delay_frames=2`` makes it two periods late for a periodic frame;
 * corrupted (``corrupt_probability``): XORed with ``corrupt_xor`` (cycled over the payload), or
   with random bytes when ``corrupt_xor`` is empty;
-* given another length (``dlc_probability``): cut or zero-padded to a random other DLC (0..8);
+* given a wrong length (``dlc_probability``): cut to a random shorter length (padding up to 8
+  bytes is no fault: the protocol allows it);
 * duplicated (``duplicate_probability``): delivered twice in a row.
 
 After every ``inject_every``-th matching frame the next frame of ``inject`` (cycled) is delivered
@@ -201,9 +202,9 @@ class FaultyBus(can.BusABC):
     def _change_dlc(self, msg: can.Message) -> can.Message:
         rng = self._rng["data"]
         n = len(msg.data)
-        new = rng.choice([d for d in range(9) if d != n])
-        data = bytes(msg.data[:new]) + bytes(max(0, new - n))
-        return _copy(msg, data)
+        if n == 0:
+            return msg
+        return _copy(msg, bytes(msg.data[: rng.randrange(n)]))
 
     # --- sending -------------------------------------------------------------------------------
     def send(self, msg: can.Message, timeout: float | None = None) -> None:

@@ -23,14 +23,21 @@ import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
+from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import DriveCore, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
 
 class LockstepClock:
-    def __init__(self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        truth_sink: TruthSink | None = None,
+        behaviour: DriveBehaviour = REFERENCE,
+    ) -> None:
         self.bus = bus
-        self.core = DriveCore(config, accept_window=1, want_truth=truth_sink is not None)
+        self.core = DriveCore(config, accept_window=1, want_truth=truth_sink is not None, behaviour=behaviour)
         self.truth_sink = truth_sink
         sim = config.sim
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
@@ -49,7 +56,12 @@ class LockstepClock:
         command_id, control_id = core.command_id, core.control_id
         n = 0
         while True:
-            msg = recv(0.0)
+            try:
+                msg = recv(0.0)
+            except can.CanError:  # a frame the bus could not deliver: counted, skipped
+                core.stats.rx_errors += 1
+                n += 1
+                continue
             if msg is None:
                 return n
             n += 1

@@ -140,6 +140,11 @@ class PlantModel:
         if k1 > 0:  # the start of the last cell
             self._step(self._head(k1), current_A + self._w(j1))
 
+    def disturbance_changed(self) -> None:
+        """The disturbance's origin moved: drop the cached per-cell values."""
+        self._w_block_index = -1
+        self._w_block = []
+
     def _split_index(self, remainder: int) -> int:
         # remainder / substeps ns into the cell, in units of SPLIT_RESOLUTION_NS
         if remainder == 0:

@@ -2,9 +2,14 @@
 
 * The **timer thread** wakes on absolute deadlines ``t0 + k Ts`` (sleep, then optionally spin the
   last ``spin_ns``: only where no other thread of the process needs the GIL, i.e. in the
-  standalone process). At each deadline it integrates the plant up to the nominal instant
-  ``k Ts``, closes the period (watchdog, heartbeat), latches the encoder and sends FEEDBACK,
-  delayed by the configured latency + jitter or dropped (seeded loss). If it falls more than a
+  standalone process). The spin yields the CPU on every turn (``sched_yield``, which also lets
+  the GIL go), so a thread of the same priority, such as the main thread handling SIGINT under
+  SCHED_FIFO, or another process on a shared CPU, is never starved; a period that starts late
+  (an overrun) is not spun at all, and under SCHED_FIFO the thread yields once per period even
+  then (under the normal policy the kernel shares the CPU on its own, and a late drive keeps it). At each
+  deadline it integrates the plant up to the nominal instant ``k Ts``, closes the period
+  (watchdog, heartbeat), latches the encoder and sends FEEDBACK, delayed by the configured
+  latency + jitter or dropped (seeded loss). If it falls more than a
   period behind it skips to the latest deadline and counts the skipped instants as overruns (the
   watchdog counts one period per processed instant, so the simulator's own stalls do not trip
   it).
@@ -12,6 +17,9 @@
   (the bus timestamp converted to the monotonic clock when plausible, else the time it was
   read): a command's current acts from its arrival (plus the input delay), so the period is
   integrated piecewise: old current up to the arrival, new current after.
+* A frame the bus cannot deliver (``bus.recv`` raising ``CanError``, e.g. a datagram on the
+  udp_multicast group that is not a python-can frame) is counted in ``stats.rx_errors`` and
+  skipped; :data:`MAX_CONSECUTIVE_RX_ERRORS` in a row (a broken bus) stop the drive.
 * An exception in either thread stops both; :meth:`RealtimeClock.check` and
   :meth:`RealtimeClock.stop` re-raise it in the caller's thread.
 
@@ -22,6 +30,7 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import os
 import sys
 import threading
 import time
@@ -31,12 +40,24 @@ import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
+from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
 RECV_POLL_S = 0.05  # the receive thread notices stop() within this
 MAX_SLEEP_S = 0.05  # the timer thread notices stop() within this
 TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now are not trusted
+MAX_CONSECUTIVE_RX_ERRORS = 1000  # bus.recv raising this often in a row: the bus is broken
+JOIN_TIMEOUT_S = 5.0  # stop() waits this long for each thread (they are daemons)
+_yield = getattr(os, "sched_yield", lambda: time.sleep(0))
+
+
+def _realtime_policy() -> bool:
+    """This thread runs under SCHED_FIFO or SCHED_RR (where same-priority threads never preempt it)."""
+    try:
+        return os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR)
+    except (AttributeError, OSError):
+        return False
 
 
 def _set_timer_slack_1ns() -> None:
@@ -58,10 +79,13 @@ class RealtimeClock:
         truth_sink: TruthSink | None = None,
         *,
         spin_ns: int = 0,
+        behaviour: DriveBehaviour = REFERENCE,
     ) -> None:
         self.bus = bus
         window = min(config.drive.watchdog_periods, 64)
-        self.core = DriveCore(config, accept_window=max(window, 2), want_truth=truth_sink is not None)
+        self.core = DriveCore(
+            config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
+        )
         self.truth_sink = truth_sink
         self.spin_ns = spin_ns
         sim = config.sim
@@ -92,7 +116,7 @@ class RealtimeClock:
         self._stop.set()
         for t in self._threads:
             if t is not threading.current_thread():
-                t.join()
+                t.join(JOIN_TIMEOUT_S)  # bounded: a stop always returns (the threads are daemons)
         self.check()
 
     def check(self) -> None:
@@ -119,21 +143,27 @@ class RealtimeClock:
             return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
     # --- threads -------------------------------------------------------------------------------
-    def _wait_until(self, deadline_ns: int) -> None:
+    def _wait_until(self, deadline_ns: int) -> bool:
+        """Sleep (then spin, yielding, the last ``spin_ns``) until ``deadline_ns``; False if it had
+        already passed (nothing waited)."""
         spin = self.spin_ns
+        waited = False
         while not self._stop.is_set():
             remaining = deadline_ns - time.monotonic_ns()
             if remaining <= 0:
-                return
+                return waited
+            waited = True
             if remaining > spin:
                 time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
             else:
-                while time.monotonic_ns() < deadline_ns:
-                    pass
-                return
+                while time.monotonic_ns() < deadline_ns and not self._stop.is_set():
+                    _yield()  # never starve a thread of the same priority, nor hold the GIL
+                return True
+        return waited
 
     def _timer_loop(self) -> None:
         _set_timer_slack_1ns()
+        realtime_policy = _realtime_policy()
         core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
         feedback_id = FrameKind.FEEDBACK + self._node_id
         outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()  # (due, id, payload)
@@ -145,7 +175,8 @@ class RealtimeClock:
                 self._wait_until(outbox[0][0])
                 _, aid, payload = outbox.popleft()
                 self._send(aid, payload)
-            self._wait_until(deadline)
+            if not self._wait_until(deadline) and realtime_policy:
+                _yield()  # late under SCHED_FIFO: still let a thread of the same priority run
             if self._stop.is_set():
                 return
             with self._lock:
@@ -179,8 +210,18 @@ class RealtimeClock:
         core, t0 = self.core, self._t0_ns
         command_id, control_id = core.command_id, core.control_id
         recv = self.bus.recv
+        errors_in_row = 0
         while not self._stop.is_set():
-            msg = recv(RECV_POLL_S)
+            try:
+                msg = recv(RECV_POLL_S)
+            except can.CanError:
+                errors_in_row += 1
+                with self._lock:
+                    core.stats.rx_errors += 1
+                if errors_in_row >= MAX_CONSECUTIVE_RX_ERRORS:
+                    raise
+                continue
+            errors_in_row = 0
             if msg is None:
                 continue
             aid = msg.arbitration_id

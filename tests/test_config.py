@@ -79,7 +79,7 @@ _DELETE = object()
         ("drive.current_limit_A", 100.0, "drive.current_limit_A", "int16"),
         ("drive.node_id", 200, "drive.node_id", "<= 127"),
         ("drive.encoder_bits", 40, "drive.encoder_bits", "<= 32"),
-        ("drive.profile", "cia402", "drive.profile", "one of"),
+        ("drive.profile", "canopen-ish", "drive.profile", "one of"),
         ("sim.substeps", 0, "sim.substeps", ">= 1"),
         ("sim.loss_probability", 1.0, "sim.loss_probability", "< 1"),
         ("reference.kind", "ramp", "reference.kind", "one of"),
@@ -172,3 +172,119 @@ def test_scenario_variant_sets_node_and_patience(tmp_path: Path) -> None:
     assert cfg.drive.watchdog_periods == cfg.drive.feedback_timeout_periods == 200
     plain = load_config(scenario_variant("paper-sine", tmp_path, node_id=7))
     assert plain.drive.node_id == 7 and plain.drive.watchdog_periods == 10
+
+
+# --- schema: flat lists, shapes, suggestions, and the schema <-> parser <-> doc agreement ----------
+def _delay_plant(extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    data = paper()
+    data["plant"]["input_delay_samples"] = 1
+    data["design"] = extra or {}
+    return data
+
+
+def test_flat_lists_are_columns_for_every_vector_field() -> None:
+    cfg = parse_config(_delay_plant({"estimator": {"Gam1": [0, 1, 0], "D1": [1.0]}}))
+    assert cfg.design.estimator.Gam1 is not None and cfg.design.estimator.Gam1.shape == (3, 1)
+    cfg = parse_config(_delay_plant({"estimator": {"Lc": [0.5, 0.4, 0.1]}}))
+    assert cfg.design.estimator.Lc is not None and cfg.design.estimator.Lc.shape == (3, 1)
+    cfg = parse_config(_delay_plant({"feedback": {"Kc": [1.0, 0.1, 0.2]}, "dob": {"Kdist": [1.0, 0.1, 0.2]}}))
+    assert cfg.design.feedback.Kc is not None and cfg.design.feedback.Kc.shape == (1, 3)
+
+
+def test_a_shape_error_names_the_expected_shape_from_the_plant() -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(_delay_plant({"estimator": {"Lc": [0.75, 0.5]}}))
+    assert info.value.field == "design.estimator.Lc"
+    assert "expected shape 3x1" in info.value.problem
+    assert "2 states + 1 delay samples x 1 inputs = 3" in info.value.problem
+
+
+@pytest.mark.parametrize(
+    ("path", "key", "suggestion"),
+    [
+        ("drive", "current_limt_A", "current_limit_A"),
+        ("drive", "current_limit", "current_limit_A"),
+        ("plant", "period", "period_us"),
+        ("run", "duration", "duration_s"),
+        ("sim", "nosie_counts_std", "noise_counts_std"),
+    ],
+)
+def test_typos_get_a_suggestion_and_the_section_keys(path: str, key: str, suggestion: str) -> None:
+    data = paper()
+    data[path][key] = 1
+    with pytest.raises(ConfigError) as info:
+        parse_config(data)
+    assert info.value.field == f"{path}.{key}"
+    assert f"did you mean {suggestion!r}" in info.value.problem
+    assert "valid keys here:" in info.value.problem
+    assert suggestion in info.value.problem.split("valid keys here:")[1]
+
+
+def test_a_wrong_choice_gets_a_suggestion() -> None:
+    with pytest.raises(ConfigError, match=r"did you mean 'extrapolate'"):
+        parse_config(mutate("run.missing_feedback_policy", "extrapolat"))
+
+
+def test_every_schema_key_is_read_by_the_parser(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each section's parser asks for exactly the keys its schema declares: none undocumented,
+    none documented but ignored."""
+    from dob_hil import config as config_module
+    from dob_hil.config_schema import SCHEMA, subsections
+
+    asked: dict[str, list[str]] = {}
+    original = config_module._Section.finish
+
+    def spy(self: Any) -> None:
+        asked[self.path] = list(self.asked)
+        original(self)
+
+    monkeypatch.setattr(config_module._Section, "finish", spy)
+    data = paper()
+    data["sim"]["faults"] = {"fault_at_s": 0.5}
+    data["reference"] = {"kind": "step"}
+    parse_config(data)
+    for spec in SCHEMA:
+        path = spec.path.replace("[]", "[0]")
+        assert path in asked, path
+        extra = set(asked[path]) - set(spec.keys) - set(subsections(spec.path.removesuffix("[]")))
+        extra -= {"native"}  # the [drive.<profile>] table
+        assert set(spec.keys) <= set(asked[path]), (path, set(spec.keys) - set(asked[path]))
+        assert not extra, (path, extra)
+
+
+def test_config_md_reference_is_generated_from_the_schema() -> None:
+    """docs/CONFIG.md's reference block is exactly `dob-hil config --doc` (python3 tools/config_doc.py)."""
+    from dob_hil.config_doc import BEGIN, END, render_reference
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "CONFIG.md").read_text(encoding="utf-8")
+    assert BEGIN in doc and END in doc
+    block = doc[doc.index(BEGIN) : doc.index(END) + len(END)] + "\n"
+    assert block == render_reference(), "docs/CONFIG.md is stale: run python3 tools/config_doc.py"
+
+
+def _toml_examples() -> list[tuple[str, str]]:
+    import re
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "CONFIG.md").read_text(encoding="utf-8")
+    out = []
+    for match in re.finditer(r"\n#### ([^\n]+)\n.*?```toml\n(.*?)```", doc, re.S):
+        out.append((match.group(1), match.group(2)))
+    return out
+
+
+@pytest.mark.parametrize(("title", "text"), _toml_examples(), ids=[t for t, _ in _toml_examples()])
+def test_config_md_examples_parse_and_design(title: str, text: str, tmp_path: Path) -> None:
+    from dob_hil.design import build_design
+
+    (tmp_path / "reference.csv").write_text("time_s,position\n0.0,0.0\n0.5,1.0\n1.0,1.0\n")
+    (tmp_path / "example.toml").write_text(text)
+    cfg = load_config(tmp_path / "example.toml")
+    design = build_design(cfg)
+    n_aug = cfg.plant.n_states + cfg.plant.input_delay_samples * cfg.plant.n_inputs
+    assert design.Phi.shape == (n_aug, n_aug)
+
+
+def test_config_md_has_the_worked_examples() -> None:
+    titles = " ".join(t.lower() for t, _ in _toml_examples())
+    for topic in ("datasheet", "dare", "two-mass", "delay", "csv", "faults"):
+        assert topic in titles, topic

@@ -2,231 +2,37 @@
 
 Parsed as data only (``tomllib``), validated field by field; every problem raises
 :class:`~dob_hil.errors.ConfigError` naming the dotted field and what is wrong with it.
-Unknown keys are errors too, so a typo never silently falls back to a default.
+Unknown keys are errors too, so a typo never silently falls back to a default. Every key is
+declared once in :mod:`dob_hil.config_schema` and read here with ``section.get(key)``
+(:mod:`dob_hil.config_reader`); a new key is one ``Field`` line there and one ``get`` here.
 """
 
 from __future__ import annotations
 
-import difflib
-import math
+import os
+import re
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
-
+from dob_hil.config_reader import Matrix, _Section, _short_int, _short_str
+from dob_hil.config_schema import (
+    MAX_AUGMENTED_STATES,
+    MAX_INPUTS,
+    MAX_OUTPUTS,
+    MAX_STATES,
+)
 from dob_hil.errors import ConfigError
 from dob_hil.loop.envelope import SafetyConfig, parse_safety
+
+ConfigSection = _Section  # what a profile's parse_options receives: its [drive.<profile>] table
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-Matrix = npt.NDArray[np.float64]
-
-MISSING_FEEDBACK_POLICIES = ("hold", "extrapolate", "zero")
-REFERENCE_KINDS = ("step", "sine", "csv")
-DISTURBANCE_KINDS = ("sine", "step", "noise")
-
-
-# ---------------------------------------------------------------------------------------------
-# Section reader: typed getters that name the field on every error and reject unknown keys.
-# ---------------------------------------------------------------------------------------------
-class _Section:
-    def __init__(self, data: object, path: str) -> None:
-        if not isinstance(data, Mapping):
-            raise ConfigError(path or "<root>", f"expected a table, got {_kind(data)}")
-        self.data: Mapping[str, Any] = data
-        self.path = path
-        self.used: set[str] = set()
-
-    def name(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path else key
-
-    def has(self, key: str) -> bool:
-        return key in self.data
-
-    def raw(self, key: str) -> object:
-        self.used.add(key)
-        return self.data[key]
-
-    def sub(self, key: str, required: bool = False) -> _Section:
-        if key not in self.data:
-            if required:
-                raise ConfigError(self.name(key), "missing (a required table)")
-            return _Section({}, self.name(key))
-        return _Section(self.raw(key), self.name(key))
-
-    def number(
-        self,
-        key: str,
-        default: float | None = None,
-        *,
-        positive: bool = False,
-        nonnegative: bool = False,
-        below: float | None = None,
-    ) -> float:
-        if key not in self.data:
-            if default is None:
-                raise ConfigError(self.name(key), "missing (a required number)")
-            return default
-        value = self.raw(key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(self.name(key), f"expected a number, got {_kind(value)}")
-        x = float(value)
-        if not math.isfinite(x):
-            raise ConfigError(self.name(key), f"must be finite, got {x}")
-        if positive and x <= 0:
-            raise ConfigError(self.name(key), f"must be > 0, got {x:g}")
-        if nonnegative and x < 0:
-            raise ConfigError(self.name(key), f"must be >= 0, got {x:g}")
-        if below is not None and x >= below:
-            raise ConfigError(self.name(key), f"must be < {below:g}, got {x:g}")
-        return x
-
-    def optional_number(self, key: str, *, positive: bool = False) -> float | None:
-        if key not in self.data:
-            return None
-        return self.number(key, positive=positive)
-
-    def integer(
-        self, key: str, default: int | None = None, *, low: int | None = None, high: int | None = None
-    ) -> int:
-        if key not in self.data:
-            if default is None:
-                raise ConfigError(self.name(key), "missing (a required integer)")
-            return default
-        value = self.raw(key)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(self.name(key), f"expected an integer, got {_kind(value)}")
-        if low is not None and value < low:
-            raise ConfigError(self.name(key), f"must be >= {low}, got {value}")
-        if high is not None and value > high:
-            raise ConfigError(self.name(key), f"must be <= {high}, got {value}")
-        return value
-
-    def boolean(self, key: str, default: bool) -> bool:
-        if key not in self.data:
-            return default
-        value = self.raw(key)
-        if not isinstance(value, bool):
-            raise ConfigError(self.name(key), f"expected true or false, got {_kind(value)}")
-        return value
-
-    def string(self, key: str, default: str | None = None, choices: tuple[str, ...] = ()) -> str:
-        if key not in self.data:
-            if default is None:
-                raise ConfigError(self.name(key), "missing (a required string)")
-            return default
-        value = self.raw(key)
-        if not isinstance(value, str):
-            raise ConfigError(self.name(key), f"expected a string, got {_kind(value)}")
-        if choices and value not in choices:
-            raise ConfigError(self.name(key), f"must be one of {', '.join(choices)}; got {value!r}")
-        return value
-
-    def strings(self, key: str) -> tuple[str, ...] | None:
-        if key not in self.data:
-            return None
-        value = self.raw(key)
-        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise ConfigError(self.name(key), f"expected a list of strings, got {_kind(value)}")
-        return tuple(value)
-
-    def integers(self, key: str) -> tuple[int, ...] | None:
-        if key not in self.data:
-            return None
-        value = self.raw(key)
-        if not isinstance(value, list) or not all(
-            isinstance(v, int) and not isinstance(v, bool) for v in value
-        ):
-            raise ConfigError(self.name(key), f"expected a list of integers, got {_kind(value)}")
-        return tuple(value)
-
-    def numbers(self, key: str, *, positive: bool = False) -> tuple[float, ...] | None:
-        if key not in self.data:
-            return None
-        arr = self.matrix(key)
-        if arr is None or (arr.shape[0] != 1 and arr.shape[1] != 1):
-            raise ConfigError(self.name(key), "expected a list of numbers")
-        flat = tuple(float(v) for v in arr.ravel())
-        if positive and any(v <= 0 for v in flat):
-            raise ConfigError(self.name(key), "every value must be > 0")
-        return flat
-
-    def matrix(self, key: str, shape: tuple[int | None, int | None] | None = None) -> Matrix | None:
-        """A 2-D float matrix. A flat list is a row vector; ``shape`` entries of None are free."""
-        if key not in self.data:
-            return None
-        return parse_matrix(self.raw(key), self.name(key), shape)
-
-    def finish(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            key = unknown[0]
-            close = difflib.get_close_matches(key, [str(k) for k in self.data if k in self.used])
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ConfigError(self.name(key), f"unknown key{hint}")
-
-
-ConfigSection = _Section  # what a profile's parse_options receives: its [drive.<profile>] table
-
-
-def _kind(value: object) -> str:
-    if isinstance(value, bool):
-        return f"boolean {value}"
-    if isinstance(value, (int, float)):
-        return f"number {value}"
-    if isinstance(value, str):
-        return f"string {value!r}"
-    if isinstance(value, list):
-        return "a list"
-    if isinstance(value, Mapping):
-        return "a table"
-    return type(value).__name__
-
-
-def parse_matrix(value: object, name: str, shape: tuple[int | None, int | None] | None = None) -> Matrix:
-    """Parse a TOML number, list or list of lists into a finite 2-D float64 array."""
-    if isinstance(value, bool):
-        raise ConfigError(name, f"expected a matrix of numbers, got {_kind(value)}")
-    if isinstance(value, (int, float)):
-        rows: list[list[object]] = [[value]]
-    elif isinstance(value, list):
-        if not value:
-            raise ConfigError(name, "expected a matrix of numbers, got an empty list")
-        if all(isinstance(r, list) for r in value):
-            rows = [list(r) for r in value]
-        elif any(isinstance(r, list) for r in value):
-            raise ConfigError(name, "mixes numbers and rows; write a list of rows")
-        else:
-            rows = [list(value)]
-    else:
-        raise ConfigError(name, f"expected a matrix of numbers, got {_kind(value)}")
-    width = len(rows[0])
-    if width == 0:
-        raise ConfigError(name, "has an empty row")
-    for i, row in enumerate(rows):
-        if len(row) != width:
-            raise ConfigError(name, f"row {i} has {len(row)} entries, row 0 has {width}")
-        for j, v in enumerate(row):
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ConfigError(name, f"entry [{i}][{j}] is {_kind(v)}, expected a number")
-            if not math.isfinite(float(v)):
-                raise ConfigError(name, f"entry [{i}][{j}] must be finite, got {v}")
-    arr = np.array(rows, dtype=np.float64)
-    if shape is not None and arr.shape[0] == 1 and shape[1] == 1 and shape[0] != 1:
-        arr = arr.T  # a flat list where a column is expected: ``Lc = [0.75, 0.5]``
-    if shape is not None:
-        want_r, want_c = shape
-        if (want_r is not None and arr.shape[0] != want_r) or (want_c is not None and arr.shape[1] != want_c):
-            want = f"{'n' if want_r is None else want_r}x{'n' if want_c is None else want_c}"
-            raise ConfigError(name, f"expected shape {want}, got {arr.shape[0]}x{arr.shape[1]}")
-    return arr
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,6 +85,7 @@ class FeedbackConfig:
     q: float | None = None
     R2: Matrix | None = None
     ltr_q_values: tuple[float, ...] | None = None
+    ltr_band_hz: tuple[float, float] | None = None  # LTR error band; default up to 2x Gtl's crossover
 
 
 @dataclass(frozen=True)
@@ -291,10 +98,30 @@ class DobConfig:
 
 
 @dataclass(frozen=True)
+class OptimizeConfig:
+    """``[design.optimize]``: the band and bounds of the ``optimize`` DOB design (dob_hil.design.optimize).
+    ``band_hz`` defaults to the span of the sine disturbances in [sim]; ``max_peak_T`` and
+    ``max_noise_rms_A`` to the starting design's own values; ``None`` bounds are not imposed."""
+
+    band_hz: tuple[float, float] | None = None
+    tune: str = "kdist"
+    max_peak_S: float = 2.0
+    max_peak_T: float | None = None
+    max_noise_rms_A: float | None = None
+    max_noise_peak_A: float | None = None
+    min_gain_margin_dB: float = 6.0
+    min_phase_margin_deg: float = 30.0
+    min_disk_gain_margin_dB: float | None = None
+    min_disk_phase_margin_deg: float | None = None
+    min_delay_margin_samples: float = 1.0
+
+
+@dataclass(frozen=True)
 class DesignConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     dob: DobConfig = field(default_factory=DobConfig)
+    optimize: OptimizeConfig = field(default_factory=OptimizeConfig)
 
 
 @dataclass(frozen=True)
@@ -310,6 +137,7 @@ class DriveConfig:
     feedback_timeout_periods: int = 10
     # the profile's own settings, parsed by its descriptor from [drive.<profile>] (None: it has none)
     options: object = None
+    clear_fault: bool = False  # send ClearFault before enabling (recover a drive left in FAULT)
 
 
 @dataclass(frozen=True)
@@ -415,112 +243,195 @@ def load_config(path: str | Path) -> Config:
 
 
 def parse_config_text(text: str, source: Path | None = None) -> Config:
+    where = str(source) if source else "<config>"
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(str(source) if source else "<config>", f"not valid TOML: {exc}") from None
+        raise ConfigError(where, f"not valid TOML: {exc}") from None
+    except RecursionError:
+        line = _first_line(text, r"[\[{]\s*[\[{]" * 50)
+        raise ConfigError(where, f"{line}arrays or tables nested too deep to read") from None
+    except ValueError:  # an integer of more than 4300 digits: int() refuses to convert it
+        line = _first_line(text, r"[0-9_]{4300}")
+        raise ConfigError(where, f"{line}an integer of more than 4300 digits (no key takes one)") from None
     return parse_config(data, source=source, text=text)
+
+
+def _first_line(text: str, pattern: str) -> str:
+    """ "line N: " for the first line matching ``pattern`` (empty if none)."""
+    match = re.search(pattern, text)
+    return f"line {text.count(chr(10), 0, match.start()) + 1}: " if match else ""
 
 
 def parse_config(data: Mapping[str, Any], source: Path | None = None, text: str = "") -> Config:
     root = _Section(data, "")
     base_dir = source.parent if source is not None else Path.cwd()
     meta = root.sub("meta")
-    name = meta.string("name", source.stem if source else "config")
-    meta.string("description", "")
+    name = _parse_name(meta, source)
+    meta.get("description")
     meta.finish()
     plant = _parse_plant(root.sub("plant", required=True))
     design = _parse_design(root.sub("design"), plant)
     drive = _parse_drive(root.sub("drive"))
     sim = _parse_sim(root.sub("sim"), plant)
-    reference = _parse_reference(root.sub("reference"), base_dir)
+    reference = _parse_reference(root.sub("reference"), base_dir, plant)
     run = _parse_run(root.sub("run"))
     safety = parse_safety(root.sub("safety"))
     root.finish()
     return Config(name, plant, design, drive, sim, reference, run, source, text, safety)
 
 
+def _parse_name(meta: _Section, source: Path | None) -> str:
+    """``meta.name`` becomes a file name: no path separators, no ``..``, nothing hidden."""
+    if not meta.has("name"):
+        stem = source.stem if source else "config"
+        return "".join(c if c.isalnum() or c in "-_." else "_" for c in stem).strip(".") or "config"
+    name: str = meta.get("name")
+    bad = [c for c in name if not (c.isalnum() or c in " -_.+")]
+    if bad or ".." in name or name.startswith((".", " ")) or not name.strip():
+        raise ConfigError(
+            meta.name("name"),
+            "must be a plain name (letters, digits, space, - _ . +; no path separators or '..'); "
+            f"got {_short_str(name)}",
+        )
+    return name
+
+
 def _parse_plant(s: _Section) -> PlantConfig:
-    A = s.matrix("A")
-    if A is None:
-        raise ConfigError(s.name("A"), "missing (the continuous state matrix)")
+    A: Matrix = s.get("A")
     if A.shape[0] != A.shape[1]:
         raise ConfigError(s.name("A"), f"must be square, got {A.shape[0]}x{A.shape[1]}")
     n = A.shape[0]
-    B = s.matrix("B", (n, None) if n == 1 else None)
-    if B is None:
-        raise ConfigError(s.name("B"), "missing (the continuous input matrix)")
+    if n > MAX_STATES:
+        raise ConfigError(s.name("A"), f"{n} states; the design handles at most {MAX_STATES}")
+    B: Matrix = s.get("B")
     if B.shape[0] == 1 and B.shape[1] == n and n != 1:
         B = B.T  # a flat list where a column is meant: ``B = [0.0, 2.1484e4]``
     if B.shape[0] != n:
         raise ConfigError(s.name("B"), f"must have {n} rows (A is {n}x{n}), got {B.shape[0]}")
-    C = s.matrix("C", (None, n))
-    if C is None:
-        raise ConfigError(s.name("C"), "missing (the output matrix)")
-    period_us = s.number("period_us", positive=True)
-    if period_us > 1e6:
-        raise ConfigError(s.name("period_us"), f"must be <= 1e6 us (1 s) for a servo loop, got {period_us:g}")
+    if B.shape[1] > MAX_INPUTS:
+        raise ConfigError(s.name("B"), f"{B.shape[1]} inputs; the design handles at most {MAX_INPUTS}")
+    C: Matrix = s.get("C", (None, n), f"A is {n}x{n}")
+    if C.shape[0] > MAX_OUTPUTS:
+        raise ConfigError(s.name("C"), f"{C.shape[0]} outputs; the design handles at most {MAX_OUTPUTS}")
+    period_us: float = s.get("period_us")
     period_ns = round(period_us * 1000.0)
     if period_ns <= 0 or abs(period_ns - period_us * 1000.0) > 1e-6 * max(1.0, period_us):
         raise ConfigError(s.name("period_us"), f"must be a whole number of ns, got {period_us} us")
-    delay = s.integer("input_delay_samples", 0, low=0, high=100)
-    state_names = s.strings("state_names") or tuple(f"x{i + 1}" for i in range(n))
-    input_names = s.strings("input_names") or tuple(f"u{i + 1}" for i in range(B.shape[1]))
-    output_names = s.strings("output_names") or tuple(f"y{i + 1}" for i in range(C.shape[0]))
+    delay: int = s.get("input_delay_samples")
+    m = B.shape[1]
+    if n + delay * m > MAX_AUGMENTED_STATES:
+        raise ConfigError(
+            s.name("input_delay_samples"),
+            f"{delay} samples x {m} inputs + {n} states = {n + delay * m} augmented states; "
+            f"the design handles at most {MAX_AUGMENTED_STATES}",
+        )
+    state_names = s.get("state_names") or tuple(f"x{i + 1}" for i in range(n))
+    input_names = s.get("input_names") or tuple(f"u{i + 1}" for i in range(m))
+    output_names = s.get("output_names") or tuple(f"y{i + 1}" for i in range(C.shape[0]))
     for key, names, count in (
         ("state_names", state_names, n),
-        ("input_names", input_names, B.shape[1]),
+        ("input_names", input_names, m),
         ("output_names", output_names, C.shape[0]),
     ):
         if len(names) != count:
             raise ConfigError(s.name(key), f"expected {count} names, got {len(names)}")
-    input_unit = s.string("input_unit", "A")
-    output_unit = s.string("output_unit", "unit")
+    input_unit: str = s.get("input_unit")
+    output_unit: str = s.get("output_unit")
+    for key, values in (
+        ("state_names", state_names),
+        ("input_names", input_names),
+        ("output_names", output_names),
+        ("input_unit", (input_unit,)),
+        ("output_unit", (output_unit,)),
+    ):
+        for value in values:
+            if "$" in value:  # plot labels would parse it as mathtext ("$\frac{$" crashes it)
+                raise ConfigError(
+                    s.name(key), f"contains '$' (plot labels read it as math); got {_short_str(value)}"
+                )
     s.finish()
     return PlantConfig(
         A, B, C, period_ns, delay, state_names, input_names, output_names, input_unit, output_unit
     )
 
 
+def _gain(s: _Section, key: str, shape: tuple[int | None, int | None], why: str) -> Matrix | None:
+    """A design matrix of the schema, shaped against the plant (the error says why)."""
+    arr: Matrix | None = s.get(key, shape, why)
+    return arr
+
+
 def _parse_design(s: _Section, plant: PlantConfig) -> DesignConfig:
     n_aug = plant.n_states + plant.input_delay_samples * plant.n_inputs
     p, m = plant.n_outputs, plant.n_inputs
+    if plant.input_delay_samples:
+        aug = f"{plant.n_states} states + {plant.input_delay_samples} delay samples x {m} inputs = {n_aug}"
+    else:
+        aug = f"{n_aug} states"
     e = s.sub("estimator")
     est = EstimatorConfig(
-        Lc=e.matrix("Lc", (n_aug, p)),
-        Gam1=e.matrix("Gam1", (n_aug, None)),
-        D1=e.matrix("D1", (p, None)),
+        Lc=_gain(e, "Lc", (n_aug, p), f"augmented states x outputs: {aug}, {p} outputs"),
+        Gam1=_gain(e, "Gam1", (n_aug, None), f"augmented states x k: {aug}"),
+        D1=_gain(e, "D1", (p, None), f"outputs x l: {p} outputs"),
     )
     if est.Lc is not None and (est.Gam1 is not None or est.D1 is not None):
         raise ConfigError(e.name("Lc"), "give either Lc or the DARE weights Gam1/D1, not both")
     e.finish()
     f = s.sub("feedback")
     fb = FeedbackConfig(
-        Kc=f.matrix("Kc", (m, n_aug)),
-        q=f.optional_number("q", positive=True),
-        R2=f.matrix("R2", (m, m)),
-        ltr_q_values=f.numbers("ltr_q_values", positive=True),
+        Kc=_gain(f, "Kc", (m, n_aug), f"inputs x augmented states: {m} inputs, {aug}"),
+        q=f.get("q"),
+        R2=_gain(f, "R2", (m, m), f"inputs x inputs: {m} inputs"),
+        ltr_q_values=f.get("ltr_q_values"),
+        ltr_band_hz=_band_hz(f, "ltr_band_hz"),
     )
     if fb.Kc is not None and (fb.q is not None or fb.R2 is not None):
         raise ConfigError(f.name("Kc"), "give either Kc or the LTR weights q/R2, not both")
     f.finish()
     d = s.sub("dob")
     dob = DobConfig(
-        Kdist=d.matrix("Kdist", (m, n_aug)),
-        method=d.string("method", "") or None,
-        gain=d.optional_number("gain", positive=True),
+        Kdist=_gain(d, "Kdist", (m, n_aug), f"inputs x augmented states: {m} inputs, {aug}"),
+        method=d.get("method") or None,
+        gain=d.get("gain"),
     )
     if dob.Kdist is not None and dob.method is not None:
         raise ConfigError(d.name("Kdist"), "give either Kdist or a design method, not both")
     d.finish()
+    opt = _parse_optimize(s.sub("optimize"))
     s.finish()
-    return DesignConfig(est, fb, dob)
+    return DesignConfig(est, fb, dob, opt)
+
+
+def _band_hz(s: _Section, key: str) -> tuple[float, float] | None:
+    band: tuple[float, ...] | None = s.get(key)
+    if band is not None and (len(band) != 2 or band[0] > band[1]):
+        raise ConfigError(s.name(key), f"must be [lo, hi] in Hz with lo <= hi, got {list(band)}")
+    return (band[0], band[1]) if band is not None else None
+
+
+def _parse_optimize(o: _Section) -> OptimizeConfig:
+    cfg = OptimizeConfig(
+        band_hz=_band_hz(o, "band_hz"),
+        tune=o.get("tune"),
+        max_peak_S=o.get("max_peak_S"),
+        max_peak_T=o.get("max_peak_T"),
+        max_noise_rms_A=o.get("max_noise_rms_A"),
+        max_noise_peak_A=o.get("max_noise_peak_A"),
+        min_gain_margin_dB=o.get("min_gain_margin_dB"),
+        min_phase_margin_deg=o.get("min_phase_margin_deg"),
+        min_disk_gain_margin_dB=o.get("min_disk_gain_margin_dB"),
+        min_disk_phase_margin_deg=o.get("min_disk_phase_margin_deg"),
+        min_delay_margin_samples=o.get("min_delay_margin_samples"),
+    )
+    o.finish()
+    return cfg
 
 
 def _parse_drive(s: _Section) -> DriveConfig:
     from dob_hil.profiles import get_profile
 
-    profile = get_profile(s.string("profile", "native"))
+    profile = get_profile(s.get("profile"))
     options = None
     if profile.parse_options is not None:
         sub = s.sub(profile.name)
@@ -528,14 +439,15 @@ def _parse_drive(s: _Section) -> DriveConfig:
         sub.finish()
     d = DriveConfig(
         profile=profile.name,
-        node_id=s.integer("node_id", 1, low=0, high=127),
-        bitrate_bps=s.integer("bitrate_bps", 1_000_000, low=10_000, high=8_000_000),
-        current_limit_A=s.number("current_limit_A", 0.7, positive=True),
-        dac_lsb_A=s.number("dac_lsb_A", 1.0 / 2048.0, positive=True),
-        encoder_counts_per_unit=s.number("encoder_counts_per_unit", 10000.0, positive=True),
-        encoder_bits=s.integer("encoder_bits", 32, low=8, high=32),
-        watchdog_periods=s.integer("watchdog_periods", 10, low=1, high=100_000),
-        feedback_timeout_periods=s.integer("feedback_timeout_periods", 10, low=1, high=100_000),
+        node_id=s.get("node_id"),
+        bitrate_bps=s.get("bitrate_bps"),
+        current_limit_A=s.get("current_limit_A"),
+        dac_lsb_A=s.get("dac_lsb_A"),
+        encoder_counts_per_unit=s.get("encoder_counts_per_unit"),
+        encoder_bits=s.get("encoder_bits"),
+        watchdog_periods=s.get("watchdog_periods"),
+        feedback_timeout_periods=s.get("feedback_timeout_periods"),
+        clear_fault=s.get("clear_fault"),
         options=options,
     )
     if d.current_limit_A / d.dac_lsb_A > 32767:
@@ -552,36 +464,42 @@ def _parse_drive(s: _Section) -> DriveConfig:
 
 def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
     dists: list[DisturbanceConfig] = []
+    s._ask("disturbance")
     if s.has("disturbance"):
         raw = s.raw("disturbance")
         if not isinstance(raw, list):
             raise ConfigError(s.name("disturbance"), "expected an array of tables [[sim.disturbance]]")
         for i, item in enumerate(raw):
             ds = _Section(item, f"{s.name('disturbance')}[{i}]")
-            kind = ds.string("kind", choices=DISTURBANCE_KINDS)
             dists.append(
                 DisturbanceConfig(
-                    kind=kind,
-                    amplitude_A=ds.number("amplitude_A", 0.0),
-                    frequency_hz=ds.number("frequency_hz", 0.0, nonnegative=True),
-                    phase_rad=ds.number("phase_rad", 0.0),
-                    start_s=ds.number("start_s", 0.0, nonnegative=True),
-                    std_A=ds.number("std_A", 0.0, nonnegative=True),
-                    seed=ds.integer("seed", 0, low=0),
-                    input_index=ds.integer("input_index", 0, low=0, high=plant.n_inputs - 1),
+                    kind=ds.get("kind"),
+                    amplitude_A=ds.get("amplitude_A"),
+                    frequency_hz=ds.get("frequency_hz"),
+                    phase_rad=ds.get("phase_rad"),
+                    start_s=ds.get("start_s"),
+                    std_A=ds.get("std_A"),
+                    seed=ds.get("seed"),
+                    input_index=ds.get("input_index"),
                 )
             )
+            if dists[-1].input_index > plant.n_inputs - 1:
+                raise ConfigError(
+                    ds.name("input_index"),
+                    f"must be <= {plant.n_inputs - 1} (the plant has {plant.n_inputs} inputs), "
+                    f"got {dists[-1].input_index}",
+                )
             ds.finish()
-    init = s.numbers("initial_state")
+    init: tuple[float, ...] | None = s.get("initial_state")
     if init is not None and len(init) != plant.n_states:
         raise ConfigError(s.name("initial_state"), f"expected {plant.n_states} values, got {len(init)}")
     sim = SimConfig(
-        substeps=s.integer("substeps", 10, low=1, high=10_000),
-        noise_counts_std=s.number("noise_counts_std", 0.0, nonnegative=True),
-        seed=s.integer("seed", 0, low=0),
-        latency_us=s.number("latency_us", 0.0, nonnegative=True),
-        jitter_us=s.number("jitter_us", 0.0, nonnegative=True),
-        loss_probability=s.number("loss_probability", 0.0, nonnegative=True, below=1.0),
+        substeps=s.get("substeps"),
+        noise_counts_std=s.get("noise_counts_std"),
+        seed=s.get("seed"),
+        latency_us=s.get("latency_us"),
+        jitter_us=s.get("jitter_us"),
+        loss_probability=s.get("loss_probability"),
         initial_state=init,
         disturbances=tuple(dists),
         faults=_parse_faults(s.sub("faults")),
@@ -592,10 +510,10 @@ def _parse_sim(s: _Section, plant: PlantConfig) -> SimConfig:
 
 def _parse_faults(s: _Section) -> FaultsConfig:
     faults = FaultsConfig(
-        fault_at_s=s.optional_number("fault_at_s", positive=True),
-        silent_at_s=s.optional_number("silent_at_s", positive=True),
-        encoder_jump_at_s=s.optional_number("encoder_jump_at_s", positive=True),
-        encoder_jump_counts=s.integer("encoder_jump_counts", 0, low=-(2**31), high=2**31 - 1),
+        fault_at_s=s.get("fault_at_s"),
+        silent_at_s=s.get("silent_at_s"),
+        encoder_jump_at_s=s.get("encoder_jump_at_s"),
+        encoder_jump_counts=s.get("encoder_jump_counts"),
     )
     if faults.encoder_jump_at_s is not None and faults.encoder_jump_counts == 0:
         raise ConfigError(s.name("encoder_jump_counts"), "missing or 0: give the jump's size in counts")
@@ -603,37 +521,83 @@ def _parse_faults(s: _Section) -> FaultsConfig:
     return faults
 
 
-def _parse_reference(s: _Section, base_dir: Path) -> ReferenceConfig:
-    kind = s.string("kind", "step", REFERENCE_KINDS)
+def _parse_reference(s: _Section, base_dir: Path, plant: PlantConfig) -> ReferenceConfig:
+    kind: str = s.get("kind")
     csv_path: Path | None = None
+    rel: str | None = s.get("path")
     if kind == "csv":
-        rel = s.string("path")
+        if rel is None:
+            raise ConfigError(s.name("path"), "missing (a required string with kind = 'csv')")
         csv_path = (base_dir / rel).resolve()
         if not csv_path.is_file():
             raise ConfigError(s.name("path"), f"no such CSV file: {csv_path}")
+        from dob_hil.control.reference import read_reference_csv
+
+        read_reference_csv(csv_path)  # every row checked before anything runs
     ref = ReferenceConfig(
         kind=kind,
-        position=s.number("position", 1.0),
-        start_s=s.number("start_s", 0.0, nonnegative=True),
-        amplitude=s.number("amplitude", 1.0),
-        frequency_hz=s.number("frequency_hz", 1.0, nonnegative=True),
-        offset=s.number("offset", 0.0),
+        position=s.get("position"),
+        start_s=s.get("start_s"),
+        amplitude=s.get("amplitude"),
+        frequency_hz=s.get("frequency_hz"),
+        offset=s.get("offset"),
         csv_path=csv_path,
     )
+    nyquist_hz = 0.5e9 / plant.period_ns
+    if kind == "sine" and ref.frequency_hz >= nyquist_hz:
+        raise ConfigError(
+            s.name("frequency_hz"),
+            f"must be below the Nyquist frequency {nyquist_hz:g} Hz of the {plant.period_ns / 1000:g} us "
+            f"period, got {ref.frequency_hz:g}",
+        )
     s.finish()
     return ref
 
 
+def check_value(section: str, key: str, value: object, name: str) -> Any:
+    """A value given elsewhere (a command-line option ``name``) checked against the schema field
+    ``section.key``; the ConfigError names ``name``."""
+    try:
+        return _Section({key: value}, section).get(key)
+    except ConfigError as exc:
+        raise ConfigError(name, exc.problem) from None
+
+
+def usable_cpus() -> set[int]:
+    """The CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return set(os.sched_getaffinity(0))
+    return set(range(os.cpu_count() or 1))  # pragma: no cover
+
+
+def check_cpus(cpus: Sequence[int], field_name: str) -> None:
+    """Each CPU must be one this process may use; ConfigError on ``field_name`` otherwise."""
+    allowed = usable_cpus()
+    for cpu in cpus:
+        if cpu not in allowed:
+            raise ConfigError(
+                field_name,
+                f"CPU {_short_int(cpu)} is not one this process may use (allowed: "
+                f"{', '.join(str(c) for c in sorted(allowed))})",
+            )
+
+
 def _parse_run(s: _Section) -> RunConfig:
     run = RunConfig(
-        duration_s=s.number("duration_s", 1.0, positive=True),
-        dob_enabled=s.boolean("dob_enabled", True),
-        log_dir=Path(s.string("log_dir", "logs")),
-        missing_feedback_policy=s.string("missing_feedback_policy", "hold", MISSING_FEEDBACK_POLICIES),
-        max_missing_periods=s.integer("max_missing_periods", 3, low=0, high=1000),
-        sched_fifo=s.boolean("sched_fifo", False),
-        cpu_affinity=s.integers("cpu_affinity"),
-        freeze_gc=s.boolean("freeze_gc", False),
+        duration_s=s.get("duration_s"),
+        dob_enabled=s.get("dob_enabled"),
+        log_dir=Path(s.get("log_dir")),
+        missing_feedback_policy=s.get("missing_feedback_policy"),
+        max_missing_periods=s.get("max_missing_periods"),
+        sched_fifo=s.get("sched_fifo"),
+        cpu_affinity=s.get("cpu_affinity"),
+        freeze_gc=s.get("freeze_gc"),
     )
+    if run.cpu_affinity is not None:
+        for cpu in run.cpu_affinity:  # which CPUs exist is checked on the machine that runs it
+            if not 0 <= cpu < 4096:
+                raise ConfigError(
+                    s.name("cpu_affinity"), f"CPU {_short_int(cpu)} is not a CPU number (0-4095)"
+                )
     s.finish()
     return run

@@ -19,8 +19,7 @@ EXPECTED_PLOTS = {
     "sensitivity.png",
     "tracking_error.png",
     "command.png",
-    "timing.png",
-}
+}  # timing.png only for real-time logs (these are lockstep): tests/analysis/test_plots.py
 
 
 def test_json_is_a_list_with_one_object_per_log_and_nothing_else(
@@ -64,7 +63,8 @@ def test_table_side_by_side_and_plots_overlaid(
     header = out.splitlines()[0]
     assert "paper-step-dob (DOB on)" in header and "paper-step-nodob (DOB off)" in header
     row = next(line for line in out.splitlines() if line.startswith("tracking error rms"))
-    assert len(row.split()) == 5  # name (3 words) + one value per log
+    assert len(row.split()) == 6  # name (3 words) + unit + one value per log
+    assert "[rev]" in row
     assert {Path(p).name for p in results[0]["plots"]} == EXPECTED_PLOTS
     for name in EXPECTED_PLOTS:
         assert (plots / name).read_bytes()[:8] == PNG_MAGIC

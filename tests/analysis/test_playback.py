@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import threading
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from dob_hil.analysis.bus_usage import counted_frames
 from dob_hil.analysis.frames import frame_messages
 from dob_hil.analysis.playback import START_LEAD_NS, play_frames
 from dob_hil.cli import main
+from dob_hil.link.protocol import FrameKind, split_id
 from dob_hil.log import read_log
 
 _channels = itertools.count()
@@ -79,6 +81,25 @@ def test_replay_to_bus_command(
     _same(receiver.got, expected)
     out = json.loads(capsys.readouterr().out)
     assert out["frames_sent"] == len(expected) and out["skipped_error_frames"] == 0
+    assert out["recorded_gap_us"]["p50"] == pytest.approx(300.0, abs=1.0)  # the 300 us feedback period
+    assert out["sent_gap_us"]["n"] == out["recorded_gap_us"]["n"]
+
+
+def test_replay_to_bus_takes_the_real_time_options(
+    runs: dict[tuple[str, bool], Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = runs[("paper-step", False)]
+    expected = _expected(path)
+    channel = f"dob-hil-playback-{next(_channels)}"
+    receiver = Receiver(channel, len(expected))
+    receiver.start()
+    argv = ["replay", str(path), "--to-bus", "-i", "virtual", "-c", channel, "--cpu", "0", "--sched-fifo"]
+    assert main(argv) == 0
+    receiver.join(15.0)
+    _same(receiver.got, expected)
+    captured = capsys.readouterr()
+    assert "gap: recorded p50 300.0 us" in captured.out
+    assert "lateness p50" in captured.out
 
 
 def test_replay_to_bus_rx_only_stands_in_for_the_drive(
@@ -95,7 +116,8 @@ def test_replay_to_bus_rx_only_stands_in_for_the_drive(
     assert main(args) == 0
     receiver.join(15.0)
     assert len(receiver.got) == n_rx
-    assert all((m.arbitration_id & 0x780) in (0x080, 0x180, 0x700) for m in receiver.got)
+    drive_kinds = (FrameKind.FAULT, FrameKind.FEEDBACK, FrameKind.HEARTBEAT)
+    assert all(split_id(m.arbitration_id)[0] in drive_kinds for m in receiver.got)
     assert json.loads(capsys.readouterr().out)["frames_sent"] == n_rx
 
 
@@ -135,6 +157,7 @@ def test_absolute_deadlines_do_not_drift(runs: dict[tuple[str, bool], Path]) -> 
         data.fd_frames,  # type: ignore[arg-type]
         clock_ns=clock.clock_ns,
         sleep=clock.sleep,
+        spin_ns=0,  # the fake clock moves only in sleep(); spinning is tested below
     )
     sent = np.asarray(clock.sent_at)
     start = 10_000_000 + START_LEAD_NS
@@ -144,3 +167,47 @@ def test_absolute_deadlines_do_not_drift(runs: dict[tuple[str, bool], Path]) -> 
     on_time = np.concatenate([[True], gaps >= 20_000])
     assert np.array_equal(sent[on_time], (start + ts - ts[0])[on_time])
     assert stats.late_frames == 0 and stats.frames_sent == len(ts)
+
+
+class TickingClock:
+    """A clock that advances 1 us per reading; sleep() overshoots by 80 us (as Linux's timer slack)."""
+
+    def __init__(self) -> None:
+        self.now = 10_000_000
+        self.sleeps: list[float] = []
+        self.sent_at: list[int] = []
+        self.send_cost_ns = 0
+
+    def clock_ns(self) -> int:
+        self.now += 1_000
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.now += round(seconds * 1e9) + 80_000
+
+
+def test_sleep_then_spin_sends_on_the_deadline_despite_a_late_waking_sleep(
+    runs: dict[tuple[str, bool], Path],
+) -> None:
+    data = read_log(runs[("paper-step", False)])
+    frames = data.frames[:40]
+    clock = TickingClock()
+    stats = play_frames(FakeBus(clock), frames, None, clock_ns=clock.clock_ns, sleep=clock.sleep,  # type: ignore[arg-type]
+                        spin_ns=150_000)  # fmt: skip
+    lat = stats.lateness_us
+    assert lat is not None and lat["max"] <= 10.0  # a few clock readings (1 us each) per frame
+    assert stats.late_frames == 0
+    naive = TickingClock()
+    late = play_frames(FakeBus(naive), frames, None, clock_ns=naive.clock_ns, sleep=naive.sleep,  # type: ignore[arg-type]
+                       spin_ns=0)  # fmt: skip
+    assert late.lateness_us is not None and late.lateness_us["p50"] >= 80.0  # the sleep's overshoot
+
+
+def test_replay_to_bus_leaves_the_process_as_it_found_it(runs: dict[tuple[str, bool], Path]) -> None:
+    path = runs[("paper-step", False)]
+    cpus, policy = os.sched_getaffinity(0), os.sched_getscheduler(0)
+    channel = f"dob-hil-playback-{next(_channels)}"
+    assert main(["replay", str(path), "--to-bus", "-i", "virtual", "-c", channel, "--cpu", "0",
+                 "--sched-fifo", "--json"]) == 0  # fmt: skip
+    assert os.sched_getaffinity(0) == cpus and os.sched_getscheduler(0) == policy

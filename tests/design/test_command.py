@@ -31,7 +31,18 @@ def test_design_paper_step_json(tmp_path: Path, capsys: pytest.CaptureFixture[st
     margins = report["loop_dob_on"]["margins_plant_input"][0]
     assert margins["gain_margin_dB"] > 6.0 and margins["phase_margin_deg"] > 30.0
     assert report["loop_dob_on"]["peak_sensitivity"]["value"] > 1.0
-    assert len(report["ltr"]["rows"]) == 8  # the config's 7 q values and the design's Kc
+    # the config's 7 q values, extended by decades until recovery in the band, and the design's Kc
+    rows = report["ltr"]["rows"]
+    assert [r["q"] for r in rows[:7]] == [1.0, 10.0, 100.0, 1000.0, 1e4, 1e5, 1e6]
+    assert rows[-2]["recovered_in_band"] and not any(r["recovered_in_band"] for r in rows[:-2])
+    assert report["ltr"]["recovered_at_q"] == rows[-2]["q"] == 1e9
+    assert rows[-1]["label"] == "design Kc"
+    # issue 15's figures for the paper's gains
+    dm = report["loop_dob_on"]["disk_margins_plant_input"][0]
+    assert round(dm["gain_margin_dB"], 1) == 17.7 and round(dm["phase_margin_deg"], 1) == 75.2
+    assert round(report["disturbance_estimate_filter"]["Q1"][0][0], 4) == 0.5055
+    assert [p["kind"] for p in report["pole_flags"]] == ["negative real"]
+    assert round(report["pole_flags"][0]["eigenvalue"][0], 2) == -0.93
     saved = Design.load(tmp_path / "design.json")
     assert saved.Kdist.tolist() == [[18.0, 3.75]]
     assert report["files"] == [str(tmp_path / "design.json")]
@@ -48,7 +59,14 @@ def test_design_text_report_and_plots(tmp_path: Path, capsys: pytest.CaptureFixt
         "loop transfer recovery",
     ):
         assert needle in text
-    for name in ("design.json", "sensitivity.png", "disturbance.png", "dob_locus.png", "ltr.png"):
+    for name in (
+        "design.json",
+        "sensitivity.png",
+        "disturbance.png",
+        "dob_filter.png",
+        "dob_locus.png",
+        "ltr.png",
+    ):
         data = (tmp_path / name).read_bytes()
         assert len(data) > 1000
         if name.endswith(".png"):
@@ -105,9 +123,9 @@ def test_importing_the_design_package_stays_light() -> None:
 def test_design_reports_the_worst_case_bus_load(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["design", "paper-step", "--json", "--no-plots", "--out", str(tmp_path)]) == 0
     load = json.loads(capsys.readouterr().out)["bus_load"]
-    # 6-byte feedback (115 bit) + 3-byte command (85 bit) + a 10 Hz 1-byte heartbeat, 1 Mbit/s, 300 us
-    assert load["frame_bits"] == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 65}
-    assert load["worst_case_fraction"] == pytest.approx((115 + 85 + 65 * 10 * 300e-6) / 300, rel=1e-9)
+    # 6-byte feedback (115 bit) + 3-byte command (85 bit) + a 10 Hz 2-byte heartbeat, 1 Mbit/s, 300 us
+    assert load["frame_bits"] == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 75}
+    assert load["worst_case_fraction"] == pytest.approx((115 + 85 + 75 * 10 * 300e-6) / 300, rel=1e-9)
 
 
 def test_design_refuses_an_impossible_bus_load(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -75,10 +75,12 @@ def test_min_radius_is_a_local_minimum_of_the_locus() -> None:
     A0 = estimator_matrix(d.Phi, d.C, d.Lc)
     rho = spectral_radius(dob_matrix(d.Phi, d.Gam, d.C, d.Lc, d.Kdist))
     assert rho == pytest.approx(r.dob.min_radius, rel=1e-9)
-    grid = np.linspace(0.0, r.dob.k_max or 10.0, 2001)
+    # over the gains that estimate at least half of a constant disturbance (the default floor)
+    assert r.dob.dc_estimate_gain[0, 0] >= 0.5 - 1e-9
+    grid = np.linspace(1.0, r.dob.k_max or 10.0, 2001)  # no delay: Q(1) = k / (1 + k) >= 0.5
     assert rho <= locus_radius(A0, d.Gam, d.C, r.dob.direction, grid).min() + 1e-6
     assert rho < max(d.spectral_radii["estimator"])  # the DOB made the estimate faster
-    with pytest.raises(ConfigError, match=r"design\.dob\.gain: not used by method min_radius"):
+    with pytest.raises(ConfigError, match=r"design\.dob\.gain: min_radius needs 0 < gain < 1"):
         build_design(_paper_with_dob('method = "min_radius"\ngain = 1.0\n'))
 
 

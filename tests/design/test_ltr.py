@@ -50,3 +50,39 @@ def test_recovery_error_falls_as_q_grows(paper_config: Config) -> None:
     assert at_cross[-1] is not None and at_cross[-1] < 0.01  # recovered around the crossover
     assert rows[-1].recovered_to_hz is not None and rows[-1].recovered_to_hz > 100.0
     assert all(r.feedback_radius < 1.0 for r in rows)
+
+
+def test_table_extends_q_until_recovery_in_the_band_and_agrees_with_the_plotted_loops(
+    paper_config: Config,
+) -> None:
+    """Issue 15: every row read "recovered to -" because q stopped at 1e6; the table must end with
+    recovery (or a reason) and its numbers must be those of the loops the plot draws."""
+    from dob_hil.design.linalg import max_singular_value
+
+    d = build_design(paper_config)
+    w = 2 * math.pi * frequency_grid_hz(d.period_ns, 800)
+    rep = ltr_report(d.Phi, d.Gam, d.C, d.Lc, Kc_design=d.Kc, R2=np.eye(1), q_values=(1.0, 1e3, 1e6),
+                     period_s=d.period_s, omega_rad_s=w, band_hz=(0.1, 200.0))  # fmt: skip
+    rows = rep.rows[:-1]
+    assert rows[-1].recovered and not any(r.recovered for r in rows[:-1])
+    assert rep.recovered_at_q == rows[-1].q and rows[-1].q is not None and rows[-1].q > 1e6
+    assert [r.q for r in rows[:3]] == [1.0, 1e3, 1e6]
+    assert all(b.q == 10 * a.q for a, b in itertools.pairwise(rows[2:]))  # type: ignore[operator]
+    f = w / (2 * math.pi)
+    band = (f >= 0.1) & (f <= 200.0)
+    g = max_singular_value(rep.Gtl)
+    for r in rep.rows:
+        err = max_singular_value(r.Lo - rep.Gtl) / g
+        assert r.band_relative_error == float(np.max(err[band]))
+        assert r.recovered == (r.band_relative_error <= 0.1)
+    assert any("sampling zero" in n for n in rep.notes)  # recovery cancels the zero near -1
+
+
+def test_input_delay_is_stated_as_an_obstruction(delay_config: Config) -> None:
+    d = build_design(delay_config)
+    w = 2 * math.pi * frequency_grid_hz(d.period_ns, 400)
+    rep = ltr_report(d.Phi, d.Gam, d.C, d.Lc, Kc_design=d.Kc, R2=np.eye(1), q_values=(1.0, 1e4),
+                     period_s=d.period_s, omega_rad_s=w)  # fmt: skip
+    assert rep.obstructions and "C Gam has rank 0 < 1" in rep.obstructions[0]
+    assert [r.q for r in rep.rows[:-1]] == [1.0, 1e4]  # not extended: it cannot recover
+    assert rep.recovered_at_q is None and any("no q recovers" in n for n in rep.notes)

@@ -145,18 +145,24 @@ def first_truth_period(data: LogData, state: DriveState, from_period: int = 0) -
 
 
 def ends_with_zero_and_disable(data: LogData, node_id: int) -> bool:
-    """The last COMMAND sent is 0 A with the enable bit clear, and a CONTROL disable follows it."""
+    """The run ended with the stop sequence (PROTOCOL.md "Stopping"): the last frame sent is CONTROL
+    disable, and the last COMMAND is 0 A with the enable bit clear, unless the drive's last feedback
+    said DISABLED (then the stop sends no COMMAND: a drive may fault on a COMMAND while DISABLED)."""
     f = data.frames
     tx = f[f["direction"] == 1]
-    cmd_rows = np.flatnonzero(tx["arbitration_id"] == FrameKind.COMMAND + node_id)
-    if not len(cmd_rows):
+    if not len(tx):
         return False
-    last = tx[cmd_rows[-1]]
-    after = tx[cmd_rows[-1] + 1 :]
-    disable_after = np.any(
-        (after["arbitration_id"] == FrameKind.CONTROL + node_id) & (after["data"][:, 0] == CONTROL_DISABLE)
-    )
-    return bytes(last["data"][:2]) == b"\x00\x00" and not last["data"][2] & ENABLE_BIT and bool(disable_after)
+    end = tx[-1]
+    if not (end["arbitration_id"] == FrameKind.CONTROL + node_id and end["data"][0] == CONTROL_DISABLE):
+        return False
+    cmd_rows = np.flatnonzero(tx["arbitration_id"] == FrameKind.COMMAND + node_id)
+    if len(cmd_rows):
+        last = tx[cmd_rows[-1]]
+        if bytes(last["data"][:2]) == b"\x00\x00" and not last["data"][2] & ENABLE_BIT:
+            return True
+    rx = f[f["direction"] == 0]
+    feedback = rx[rx["arbitration_id"] == FrameKind.FEEDBACK + node_id]
+    return len(feedback) > 0 and not feedback["data"][-1, 5] & 0x03  # neither ENABLED nor FAULT
 
 
 @dataclass

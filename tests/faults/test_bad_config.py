@@ -346,3 +346,211 @@ def test_perturbed_designs_are_stable_or_refused(
         assert period_us <= 300.0 or bitrate < 1_000_000
     else:
         assert 0.0 < load.fraction <= 1.0
+
+
+# --- hostile configs (issue 10): one line naming the field, exit 2, nothing opened ---------------
+_BIG = "1" + "0" * 400
+HOSTILE_CONFIGS = [
+    ("integer beyond float range", _edit("current_limit_A = 0.7", f"current_limit_A = {_BIG}"),
+     "drive.current_limit_A"),
+    ("integer beyond float range in a matrix", _edit("Kc = [[107.42, 0.3]]", f"Kc = [[{_BIG}, 0.3]]"),
+     "design.feedback.Kc"),
+    ("integer beyond float range as the period", _edit("period_us = 300.0", f"period_us = {_BIG}"),
+     "plant.period_us"),
+    ("integer of 5000 digits", _edit("node_id = 1\n", "node_id = 1" + "0" * 5000 + "\n"), "line "),
+    ("arrays nested 5000 deep", PAPER + "\n[meta2]\nx = " + "[" * 5000 + "]" * 5000 + "\n", "nested"),
+    ("NUL in a string", _edit('output_unit = "rev"', 'output_unit = "r\\u0000ev"'), "plant.output_unit"),
+    ("escape sequence in a name", _edit('state_names = ["position", "velocity"]',
+                                        'state_names = ["\\u001b[2J", "velocity"]'), "plant.state_names[0]"),
+    ("Kdist of -1e308", _edit("Kdist = [[18.0, 3.75]]", "Kdist = [[-1e308, 3.75]]"), "design.dob.Kdist"),
+    ("encoder noise 1e308", _edit("noise_counts_std = 0.0", "noise_counts_std = 1e308"),
+     "sim.noise_counts_std"),
+    ("initial state 1e305", _edit("seed = 0\n", "seed = 0\ninitial_state = [1e305, 0]\n"),
+     "sim.initial_state"),
+    ("encoder counts 1e308", _edit("encoder_counts_per_unit = 10000.0", "encoder_counts_per_unit = 1e308"),
+     "drive.encoder_counts_per_unit"),
+    ("encoder counts 1e-300", _edit("encoder_counts_per_unit = 10000.0", "encoder_counts_per_unit = 1e-300"),
+     "drive.encoder_counts_per_unit"),
+    ("disturbance amplitude 1e308", _edit("amplitude_A = 0.2", "amplitude_A = 1e308"),
+     "sim.disturbance[0].amplitude_A"),
+    ("disturbance frequency 1e308", _edit("frequency_hz = 4.0 ", "frequency_hz = 1e308 "),
+     "sim.disturbance[0].frequency_hz"),
+    ("disturbance start 1e308", _edit('kind = "sine"\n', 'kind = "sine"\nstart_s = 1e308\n'),
+     "sim.disturbance[0].start_s"),
+    ("reference start 1e308", _edit("start_s = 0.0\n", "start_s = 1e308\n"), "reference.start_s"),
+    ("sine reference above Nyquist",
+     _edit('kind = "step"\nposition = 1.0\nstart_s = 0.0\n', 'kind = "sine"\nfrequency_hz = 1e308\n'),
+     "reference.frequency_hz"),
+    ("run duration 1e308", _edit("duration_s = 1.0", "duration_s = 1e308"), "run.duration_s"),
+    ("CPU -1", _edit("dob_enabled = true", "dob_enabled = true\ncpu_affinity = [-1, 100000]"),
+     "run.cpu_affinity"),
+    ("name with ../", _edit('name = "paper-step"', 'name = "../../escaped"'), "meta.name"),
+    ("name with a slash", _edit('name = "paper-step"', 'name = "a/b"'), "meta.name"),
+    ("300-state plant", _edit("A = [[0.0, 1.0], [0.0, -128.59]]", f"A = {[[0.0] * 300] * 300}"), "plant.A"),
+    ("100 delay samples", _edit("period_us = 300.0", "period_us = 300.0\ninput_delay_samples = 100"),
+     "plant.input_delay_samples"),
+    ("typo with a suggestion", _edit("current_limit_A = 0.7", "current_limt_A = 0.7"), "current_limit_A"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("case", "text", "names"), HOSTILE_CONFIGS, ids=[c[0] for c in HOSTILE_CONFIGS])
+@pytest.mark.parametrize("command", ["run", "design"])
+def test_hostile_config_is_one_line_with_status_2(
+    command: str, case: str, text: str, names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    if command == "run":
+        argv = ["run", str(path), "--duration", "0.01", "--log", str(tmp_path / "x.mcap"), "--no-progress"]
+    else:
+        argv = ["design", str(path), "--out", str(tmp_path / "design"), "--no-plots"]
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"dob-hil {command}: error:")
+    assert names in lines[0]
+    assert len(lines[0]) < 600  # never a dump of the config
+    assert not (tmp_path / "x.mcap").exists()
+    assert not (tmp_path.parent / "escaped").exists()
+
+
+def test_a_typo_gets_a_suggestion_and_the_valid_keys(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "typo.toml"
+    path.write_text(_edit("current_limit_A = 0.7", "current_limt_A = 0.7"))
+    assert cli.main(["design", str(path), "--no-plots", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "drive.current_limt_A: unknown key (did you mean 'current_limit_A'?)" in err
+    assert "valid keys here: profile, node_id, bitrate_bps, current_limit_A" in err
+
+
+@pytest.mark.parametrize(
+    ("argv_tail", "names"),
+    [
+        (["--duration=inf"], "--duration"),
+        (["--duration=nan"], "--duration"),
+        (["--duration", "1e308"], "--duration"),
+        (["--cpu", "-1"], "--cpu"),
+        (["--cpu", "100000"], "--cpu"),
+        (["--log", "README.md/x.mcap"], "--log"),
+    ],
+)
+def test_bad_run_options_are_one_line(
+    argv_tail: list[str], names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    (tmp_path / "README.md").write_text("a file, not a folder\n")
+    monkeypatch.chdir(tmp_path)
+    path = tmp_path / "good.toml"
+    path.write_text(PAPER)
+    argv = ["run", str(path), "--no-progress"]
+    if "--log" not in argv_tail:
+        argv += ["--log", str(tmp_path / "x.mcap")]
+    rc = cli.main(argv + argv_tail)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.startswith(f"dob-hil run: error: {names}") and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_config_cpu_this_machine_lacks_is_refused_by_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "cpu.toml"
+    path.write_text(_edit("dob_enabled = true", "dob_enabled = true\ncpu_affinity = [4095]"))
+    rc = cli.main(["run", str(path), "--no-progress", "--log", str(tmp_path / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("dob-hil run: error: run.cpu_affinity: CPU 4095 is not one"), err
+    assert not (tmp_path / "x.mcap").exists()
+    parse_config(tomllib.loads(path.read_text()))  # a log's copy still parses on any machine
+
+
+def test_an_unwritable_log_folder_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import os
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as root: a read-only folder is still writable")
+        path = tmp_path / "good.toml"
+        path.write_text(PAPER)
+        rc = cli.main(["run", str(path), "--no-progress", "--log", str(ro / "sub" / "x.mcap")])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("dob-hil run: error: --log: cannot create folder"), err
+        path.write_text(_edit("dob_enabled = true", f'dob_enabled = true\nlog_dir = "{ro}"'))
+        rc = cli.main(["run", str(path), "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("dob-hil run: error: run.log_dir: cannot write into folder"), err
+    finally:
+        ro.chmod(0o755)
+
+
+def test_a_read_only_file_system_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """EROFS from mkdir, and a folder the OS says cannot be written (as on a read-only mount)."""
+    import errno
+    import os
+
+    from dob_hil.commands import paths
+
+    path = tmp_path / "good.toml"
+    path.write_text(PAPER)
+
+    def erofs(self: Path, *args: object, **kwargs: object) -> None:
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+
+    with monkeypatch.context() as m:
+        m.setattr(Path, "mkdir", erofs)
+        rc = cli.main(["run", str(path), "--no-progress", "--log", str(tmp_path / "new" / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--log: cannot create folder" in err and "Read-only file system" in err, err
+    monkeypatch.setattr(paths.os, "access", lambda *a, **k: False)
+    rc = cli.main(["run", str(path), "--no-progress", "--log", str(tmp_path / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--log: cannot write into folder" in err, err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "names"),
+    [
+        (b"time_s,position\n0,\xff\xfe\n", "not UTF-8"),
+        (b"root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1\n", "line 1: the header must be"),
+        (b"time_s,position\n0,0\n1,secret-token\n", "line 3, column 2: not a number"),
+    ],
+)
+def test_a_bad_reference_csv_names_the_line_never_its_content(
+    content: bytes, names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "ref.csv").write_bytes(content)
+    path = tmp_path / "csv.toml"
+    step = 'kind = "step"\nposition = 1.0\nstart_s = 0.0\n'
+    path.write_text(_edit(step, 'kind = "csv"\npath = "ref.csv"\n'))
+    rc = cli.main(["run", str(path), "--no-progress", "--log", str(tmp_path / "x.mcap")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "reference.path" in err and names in err
+    assert "root:x" not in err and "secret" not in err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_firmware_sim_shares_the_parser(tmp_path: Path) -> None:
+    import subprocess
+
+    path = tmp_path / "bad.toml"
+    path.write_text(_edit("current_limit_A = 0.7", f"current_limit_A = {_BIG}"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "firmware_sim", str(path), "-i", "virtual", "-c", "nowhere"],
+        check=False, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert "drive.current_limit_A" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1

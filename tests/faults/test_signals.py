@@ -10,6 +10,7 @@ log-writer child finishes the file.
 from __future__ import annotations
 
 import os
+import pty
 import signal
 import subprocess
 import sys
@@ -30,26 +31,35 @@ DOB_HIL = Path(sys.executable).parent / "dob-hil"
 
 
 class Run:
-    """``dob-hil run`` in its own session; its stderr is collected by a thread (the progress bar on
-    it tells that the loop runs, i.e. that the signal handlers are installed)."""
+    """``dob-hil run`` in its own session; its stderr is a pseudo-terminal (the progress bar is drawn
+    only on a terminal) read by a thread: the bar tells that the loop runs, i.e. that the signal
+    handlers are installed."""
 
     def __init__(self, args: list[str], log: Path) -> None:
         exe = [str(DOB_HIL)] if DOB_HIL.exists() else [sys.executable, "-m", "dob_hil.cli"]
+        self._tty, tty_child = pty.openpty()
         self.proc = subprocess.Popen(
             [*exe, "run", *args, "--log", str(log)],
             stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
+            stderr=tty_child,
             text=True,
             start_new_session=True,
         )
+        os.close(tty_child)
         self.err: list[str] = []
         self._pump = threading.Thread(target=self._read_err, daemon=True)
         self._pump.start()
 
     def _read_err(self) -> None:
-        assert self.proc.stderr is not None
-        while chunk := self.proc.stderr.read(1):
-            self.err.append(chunk)
+        while True:
+            try:
+                chunk = os.read(self._tty, 4096)
+            except OSError:  # EIO: the child closed its end
+                break
+            if not chunk:
+                break
+            self.err.append(chunk.decode(errors="replace"))
+        os.close(self._tty)
 
     def wait_running(self, after_s: float) -> None:
         deadline = time.monotonic() + 60.0

@@ -192,9 +192,10 @@ def test_command_sequence_wraps(bus_pair: tuple[can.BusABC, can.BusABC]) -> None
 def test_bad_frame_faults_the_drive(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
     rig = Rig(bus_pair, make_config(sim=NO_DIST))
     rig.enable()
-    rig.host.send_raw(FrameKind.COMMAND, b"\x01\x02")  # DLC 2, not 3
+    rig.host.send_raw(FrameKind.COMMAND, b"\x01\x02")  # 2 bytes, not 3
     rig.drive.service()
-    assert rig.host.drain() == [FaultFrame(FaultCode.BAD_FRAME, 0x01), HeartbeatFrame(DriveState.FAULT)]
+    low_byte = (FrameKind.COMMAND + 1) & 0xFF  # 0xA1
+    assert rig.host.drain() == [FaultFrame(FaultCode.BAD_FRAME, low_byte), HeartbeatFrame(DriveState.FAULT)]
     assert rig.drive.state is DriveState.FAULT
     rig.drive.advance_period()
     assert feedbacks(rig.host.drain())[0].status == Status.FAULT

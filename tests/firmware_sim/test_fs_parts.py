@@ -194,12 +194,22 @@ def test_fault_keeps_the_first_code() -> None:
     assert sm.fault_code is FaultCode.BAD_FRAME and sm.state is DriveState.FAULT
 
 
-def test_watchdog_trips_on_the_nth_missed_period() -> None:
+def test_watchdog_trips_on_the_nth_missed_period_once_armed() -> None:
     wd = CommandWatchdog(3)
     assert [wd.period_elapsed(False) for _ in range(2)] == [False, False]
-    assert not wd.period_elapsed(True) and wd.missed == 0  # a command resets the count
+    assert not wd.period_elapsed(True) and wd.missed == 0  # a command arms it and resets the count
     assert [wd.period_elapsed(False) for _ in range(3)] == [False, False, True]
-    assert wd.missed == 3
+    assert wd.missed == 3 and wd.info == 3
+
+
+def test_watchdog_before_the_first_command_allows_the_arming_time() -> None:
+    wd = CommandWatchdog(3, arm_periods=10)
+    assert [wd.period_elapsed(False) for _ in range(10)] == [False] * 9 + [True]
+    assert wd.info == 0  # no first command
+    wd = CommandWatchdog(3)  # at least twice the watchdog
+    assert [wd.period_elapsed(False) for _ in range(6)] == [False] * 5 + [True]
+    wd.reset()  # entering ENABLED again: disarmed
+    assert not wd.armed and [wd.period_elapsed(False) for _ in range(5)] == [False] * 5
 
 
 # --- current path (input delay) --------------------------------------------------------------------

@@ -25,7 +25,7 @@ from dob_hil.link.protocol import (
     encode_control,
 )
 from firmware_sim import GroundTruth, SimulatedDrive
-from firmware_sim.core import DriveCore, FrameResult
+from firmware_sim.core import FIRST_COMMAND_TIMEOUT_NS, DriveCore, FrameResult
 
 PERIOD_US = 1000.0
 PLANT = {"period_us": PERIOD_US}
@@ -106,18 +106,40 @@ def test_host_loop_enables_and_commands_in_real_time(bus_pair: tuple[can.BusABC,
     assert truth[-1].state[0] > 0.0 and truth[-1].state[1] > 0.0
 
 
-def test_watchdog_trips_without_commands(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+def test_watchdog_trips_once_armed_by_a_first_command(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
     host_bus, drive_bus = bus_pair
     host = Host(host_bus)
     with SimulatedDrive(
         drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
     ) as drive:
         host.control(ControlRequest.ENABLE)
+        frames = host.wait_for(HeartbeatFrame, timeout_s=PATIENCE_S)
+        while True:  # answer the first feedback that reports ENABLED, then fall silent
+            fb = host.wait_for(FeedbackFrame)[-1]
+            assert isinstance(fb, FeedbackFrame)
+            if fb.status & Status.ENABLED:
+                host.command(0, fb.seq)
+                break
         frames = host.wait_for(FaultFrame, timeout_s=PATIENCE_S)
         frames += host.wait_for(FeedbackFrame)
         assert drive.state is DriveState.FAULT
     assert FaultFrame(FaultCode.WATCHDOG, 5) in frames
     assert feedbacks(frames)[-1].status == Status.FAULT | Status.WATCHDOG  # type: ignore[arg-type]
+
+
+def test_watchdog_without_a_first_command_trips_with_info_0(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    """Not armed, the watchdog allows the host FIRST_COMMAND_TIMEOUT_NS (not watchdog_periods)."""
+    host_bus, drive_bus = bus_pair
+    host = Host(host_bus)
+    with SimulatedDrive(
+        drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
+    ) as drive:
+        host.control(ControlRequest.ENABLE)
+        frames = host.wait_for(FaultFrame, timeout_s=10.0)
+        assert drive.state is DriveState.FAULT
+        periods = drive.stats.samples
+    assert FaultFrame(FaultCode.WATCHDOG, 0) in frames
+    assert periods * PLANT["period_us"] * 1000 >= FIRST_COMMAND_TIMEOUT_NS  # type: ignore[operator]
 
 
 def test_loss_latency_and_jitter_keep_order(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:

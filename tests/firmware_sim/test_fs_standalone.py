@@ -68,7 +68,7 @@ def bus_spec(request: pytest.FixtureRequest) -> Iterator[tuple[str, str, can.Bus
 
 def test_exchange_with_a_standalone_drive(bus_spec: tuple[str, str, can.BusABC], tmp_path: Path) -> None:
     interface, channel, bus = bus_spec
-    node_id = random.randint(20, 120)  # other tests on the same multicast port: filter by id
+    node_id = random.randint(2, 15)  # other tests on the same multicast port: filter by id
     cfg = tmp_path / "drive.toml"
     cfg.write_text(
         # a 60 s watchdog: a starved machine must not trip it between two answers
@@ -177,6 +177,16 @@ def test_bad_config_exits_2_with_one_line(plant: dict[str, object], field: str, 
     assert done.stderr.count("\n") == 1 and field in done.stderr, done.stderr
 
 
+def test_a_node_id_beyond_the_protocol_exits_2_with_one_line(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(dump_toml(merged_data(drive={"node_id": 99})))
+    done = _run([str(cfg), "-i", "virtual", "-c", "unused"], tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and "drive.node_id" in done.stderr and "0..15" in done.stderr, (
+        done.stderr
+    )
+
+
 def test_missing_config_file_exits_2(tmp_path: Path) -> None:
     done = _run([str(tmp_path / "nope.toml")], tmp_path)
     assert done.returncode == 2
@@ -194,7 +204,11 @@ def test_argument_parsing() -> None:
         500000,
         9000,
     )
-    assert args.duration is None and args.spin_us == 100.0
+    assert args.duration is None and args.spin_us == "auto" and args.variant == "reference"
+    assert parse_args(["c.toml", "--spin-us", "25"]).spin_us == 25.0
+    for bad in (["--spin-us", "fast"], ["--spin-us", "-1"], ["--watchdog-periods", "0"]):
+        with pytest.raises(SystemExit):
+            parse_args(["c.toml", *bad])
     with pytest.raises(SystemExit) as info:
         parse_args(["c.toml", "--duration", "-1"])
     assert info.value.code == 2

@@ -65,9 +65,9 @@ def test_frame_bits_refuses_impossible_lengths(n: int) -> None:
 
 def test_paper_config_loads_the_bus_two_thirds() -> None:
     load = worst_case_bus_load(DriveConfig(), PAPER_PERIOD_NS)
-    # FEEDBACK 115 + COMMAND 85 bits per period, a 65-bit heartbeat every 100 ms
-    expected_bits = 115 + 85 + 65 * 10.0 * 300e-6
-    assert load.frame_bits == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 65}
+    # FEEDBACK 115 + COMMAND 85 bits per period, a 75-bit heartbeat (2 bytes) every 100 ms
+    expected_bits = 115 + 85 + 75 * 10.0 * 300e-6
+    assert load.frame_bits == {"FEEDBACK": 115, "COMMAND": 85, "HEARTBEAT": 75}
     assert load.bits_per_period == pytest.approx(expected_bits, rel=1e-12)
     assert load.time_per_period_us == pytest.approx(expected_bits, rel=1e-12)  # 1 bit = 1 us at 1 Mbit/s
     assert load.fraction == pytest.approx(expected_bits / 300.0, rel=1e-12)

@@ -48,10 +48,10 @@ def signals_of(frame: p.Frame) -> dict[str, int]:
     if isinstance(frame, CommandFrame):
         return {"CurrentCounts": frame.current_counts, "AnsweredSeq": frame.seq, "Enable": int(frame.enable)}
     if isinstance(frame, ControlFrame):
-        return {"Request": int(frame.request)}
+        return {"Request": int(frame.request), "ProtocolVersion": frame.version}
     if isinstance(frame, FaultFrame):
         return {"FaultCode": int(frame.code), "FaultInfo": frame.info}
-    return {"DriveState": int(frame.state)}
+    return {"DriveState": int(frame.state), "ProtocolVersion": frame.version}
 
 
 def frame_of(kind: FrameKind, signals: dict[str, int]) -> p.Frame:
@@ -69,10 +69,10 @@ def frame_of(kind: FrameKind, signals: dict[str, int]) -> p.Frame:
     if kind is FrameKind.COMMAND:
         return CommandFrame(signals["CurrentCounts"], signals["AnsweredSeq"], bool(signals["Enable"]))
     if kind is FrameKind.CONTROL:
-        return ControlFrame(ControlRequest(signals["Request"]))
+        return ControlFrame(ControlRequest(signals["Request"]), signals["ProtocolVersion"])
     if kind is FrameKind.FAULT:
         return FaultFrame(FaultCode(signals["FaultCode"]), signals["FaultInfo"])
-    return HeartbeatFrame(DriveState(signals["DriveState"]))
+    return HeartbeatFrame(DriveState(signals["DriveState"]), signals["ProtocolVersion"])
 
 
 def test_dbc_ships_as_package_data() -> None:
@@ -130,12 +130,41 @@ def test_codec_decodes_what_cantools_encodes(db: Any, frame: p.Frame) -> None:
 
 def test_cantools_refuses_what_the_codec_refuses(db: Any) -> None:
     with pytest.raises(cantools.database.EncodeError):
-        db.encode_message(0x201, {"CurrentCounts": 32768, "AnsweredSeq": 0, "Enable": 0})
+        db.encode_message(0x6A1, {"CurrentCounts": 32768, "AnsweredSeq": 0, "Enable": 0})
     with pytest.raises(cantools.database.EncodeError):
-        db.encode_message(0x081, {"FaultCode": 0, "FaultInfo": 0})
+        db.encode_message(0x681, {"FaultCode": 0, "FaultInfo": 0})
 
 
-@pytest.mark.parametrize("node", [0, 5, 64, 127])
+def test_dbc_carries_version_send_types_and_cycle_times(db: Any) -> None:
+    """The protocol version and heartbeat period as database attributes; per frame the send type,
+    the cycle time of the 100 ms HEARTBEAT in ms, and of the per-period frames in us."""
+    assert db.version == f"dob_hil native {p.PROTOCOL_VERSION}"
+    attributes = {name: a.value for name, a in db.dbc.attributes.items()}
+    assert attributes == {
+        "ProtocolVersion": p.PROTOCOL_VERSION,
+        "HeartbeatPeriodMs": p.HEARTBEAT_PERIOD_NS // 10**6,
+    }
+    heartbeat = db.get_message_by_name("HEARTBEAT")
+    assert heartbeat.cycle_time == p.HEARTBEAT_PERIOD_NS // 10**6
+    assert heartbeat.send_type == "CyclicAndEvent"
+    for name in ("FEEDBACK", "COMMAND"):
+        message = db.get_message_by_name(name)
+        assert message.send_type == "Cyclic"
+        assert message.dbc.attributes["GenMsgCycleTimeUs"].value == 300
+    for name in ("FAULT", "CONTROL"):
+        assert db.get_message_by_name(name).send_type == "Event"
+        assert db.get_message_by_name(name).cycle_time is None
+
+
+def test_dbc_for_node_sets_the_cycle_time_of_another_period() -> None:
+    db: Any = cantools.database.load_string(dbc_for_node(3, period_us=1000), database_format="dbc")
+    assert db.get_message_by_name("FEEDBACK").dbc.attributes["GenMsgCycleTimeUs"].value == 1000
+    assert db.get_message_by_name("COMMAND").frame_id == p.frame_id(FrameKind.COMMAND, 3)
+    with pytest.raises(ProtocolError, match="period_us"):
+        dbc_for_node(3, period_us=0)
+
+
+@pytest.mark.parametrize("node", [0, 5, 9, 15])
 def test_dbc_for_node_rewrites_only_the_ids(node: int) -> None:
     db: Any = cantools.database.load_string(dbc_for_node(node), database_format="dbc")
     by_id = {m.frame_id: m for m in db.messages}
@@ -157,7 +186,7 @@ def test_dbc_for_node_1_is_the_shipped_file() -> None:
     assert dbc_for_node(1) == dbc_text()
 
 
-@pytest.mark.parametrize("node", [-1, 128])
+@pytest.mark.parametrize("node", [-1, 16, 128])
 def test_dbc_for_node_refuses_bad_node_ids(node: int) -> None:
-    with pytest.raises(ProtocolError, match=f"node_id: must be 0..127, got {node}"):
+    with pytest.raises(ProtocolError, match=f"node_id: the native protocol has nodes 0..15, got {node}"):
         dbc_for_node(node)

@@ -95,15 +95,15 @@ def test_foreign_malformed_and_error_frames_are_skipped_with_events(rig: Rig) ->
     d = rig.drive
     sent = [
         can.Message(arbitration_id=0x20000000, is_error_frame=True, data=bytes(8)),
-        can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=6),
-        can.Message(arbitration_id=0x181, is_extended_id=True, data=bytes(6)),
-        can.Message(arbitration_id=0x182, is_extended_id=False, data=bytes(6)),  # node 2's feedback
+        can.Message(arbitration_id=0x6B1, is_remote_frame=True, dlc=6),
+        can.Message(arbitration_id=0x6B1, is_extended_id=True, data=bytes(6)),
+        can.Message(arbitration_id=0x6B2, is_extended_id=False, data=bytes(6)),  # node 2's feedback
         can.Message(arbitration_id=0x100, is_extended_id=False, data=b"\x01"),  # no native frame
-        can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes(5)),  # short feedback
-        can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes(5) + b"\x10"),  # reserved bit
-        can.Message(arbitration_id=0x181, is_extended_id=False, is_fd=True, data=bytes(6)),  # CAN FD
-        can.Message(arbitration_id=0x081, is_extended_id=False, data=b"\x00\x00"),  # fault code 0
-        can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x09"),  # drive state 9
+        can.Message(arbitration_id=0x6B1, is_extended_id=False, data=bytes(5)),  # short feedback
+        can.Message(arbitration_id=0x6B1, is_extended_id=False, data=bytes(5) + b"\x10"),  # reserved bit
+        can.Message(arbitration_id=0x6B1, is_extended_id=False, is_fd=True, data=bytes(6)),  # CAN FD
+        can.Message(arbitration_id=0x681, is_extended_id=False, data=b"\x00\x00"),  # fault code 0
+        can.Message(arbitration_id=0x6C1, is_extended_id=False, data=b"\x09\x02"),  # drive state 9
     ]
     for msg in sent:
         d.raw(msg)
@@ -124,15 +124,15 @@ def test_foreign_malformed_and_error_frames_are_skipped_with_events(rig: Rig) ->
         "DRIVE_STATE",  # the valid feedback: unknown -> ENABLED
     ]
     texts = [ev.message for ev in rig.rec.events]
-    assert "id 0x182" in texts[3] and "no frame of node 1" in texts[3]
-    assert "expected DLC 6, got 5" in texts[5]
+    assert "id 0x6B2" in texts[3] and "no frame of node 1" in texts[3]
+    assert "expected 6 bytes (padding up to 8 allowed), got 5" in texts[5]
     assert "reserved status bits" in texts[6]
     assert "unknown fault code 0" in texts[8]
     assert "unknown drive state 9" in texts[9]
     # every received frame went to the frame hook first, as received
     assert len(rig.rec.frames) == len(sent) + 1
     assert all(is_rx for _, is_rx in rig.rec.frames)
-    assert [m.arbitration_id for m, _ in rig.rec.frames] == [m.arbitration_id for m in sent] + [0x181]
+    assert [m.arbitration_id for m, _ in rig.rec.frames] == [m.arbitration_id for m in sent] + [0x6B1]
     s = rig.link.stats
     assert (s.error_frames, s.foreign_frames, s.malformed_frames, s.feedback) == (1, 4, 5, 1)
     assert rig.link.last_fault is None and not rig.link.faulted
@@ -211,7 +211,7 @@ def test_any_payload_on_the_feedback_id_agrees_with_the_codec(data: bytes) -> No
         can.Bus(interface="virtual", channel=channel) as drive,
     ):
         rig = make_rig(host, drive)
-        drive.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=data))
+        drive.send(can.Message(arbitration_id=0x6B1, is_extended_id=False, data=data))
         fb = rig.link.receive_feedback(0)
         try:
             frame = p.decode_feedback(data)
@@ -319,9 +319,9 @@ def test_send_command(rig: Rig) -> None:
     ]
     tx = [(m.arbitration_id, bytes(m.data), is_rx) for m, is_rx in rig.rec.frames]
     assert tx == [
-        (0x201, bytes.fromhex("99052c"), False),
-        (0x601, b"\x01", False),
-        (0x201, bytes.fromhex("f9ffff"), False),
+        (0x6A1, bytes.fromhex("99052c"), False),
+        (0x691, b"\x01\x02", False),
+        (0x6A1, bytes.fromhex("f9ffff"), False),
     ]
     assert rig.link.stats.tx_frames == 3
 
@@ -347,7 +347,7 @@ def test_send_failure_is_reported_and_raised_as_drive_fault(
 
     monkeypatch.setattr(rig.host, "send", failing_send)
     with pytest.raises(
-        DriveFault, match=r"node 1: sending COMMAND \(id 0x201\) failed: Transmit buffer full"
+        DriveFault, match=r"node 1: sending COMMAND \(id 0x6A1\) failed: Transmit buffer full"
     ) as info:
         rig.link.send_command((10,), 1)
     assert isinstance(info.value.__cause__, can.CanOperationError)
@@ -393,10 +393,121 @@ def test_enable_against_a_drive_thread(rig: Rig) -> None:
 def test_enable_timeout_names_the_last_state(rig: Rig) -> None:
     rig.drive.heartbeat(DriveState.FAULT)
     with pytest.raises(
-        DriveFault, match=r"did not report enabled within 1 ms \(last reported state: FAULT\)"
-    ):
+        DriveFault,
+        match=r"did not report enabled within 1 ms \(last reported state: FAULT; fault code unknown",
+    ) as info:
         rig.link.enable(1_000_000)
+    assert "--clear-fault" in str(info.value)
     assert not rig.link.enable_requested
+
+
+def test_enable_of_a_faulted_drive_names_code_info_rejections_and_remedy(rig: Rig) -> None:
+    """A drive left in FAULT (say, by a killed host) refuses to enable: the error says why."""
+    rig.drive.fault(FaultCode.WATCHDOG, 10)
+    rig.drive.raw(can.Message(arbitration_id=0x6B1, is_extended_id=False, data=bytes(5)))  # short
+    rig.drive.feedback(0, 7, Status.FAULT | Status.WATCHDOG)
+    assert rig.link.receive_feedback(0) is not None
+    rig.link.request_enable()
+    rig.drive.heartbeat(DriveState.FAULT)  # the drive's answer: enable refused
+    with pytest.raises(DriveFault) as info:
+        rig.link.poll_enabled()
+    text = str(info.value)
+    assert "the drive refuses to enable: the drive is in FAULT (last fault WATCHDOG (info 10" in text
+    assert (
+        "rejected 1 frame(s) of node 1 (1 malformed, 0 stale, 0 undeliverable; first: id 0x6B1 DLC 5" in text
+    )
+    assert "dob-hil run --clear-fault" in text
+
+
+def test_clear_fault_waits_until_the_drive_leaves_fault(rig: Rig) -> None:
+    rig.drive.fault(FaultCode.WATCHDOG, 10)
+    assert rig.link.receive_feedback(0) is None and rig.link.faulted
+
+    def drive_side() -> None:
+        msg = rig.drive.bus.recv(5.0)
+        if msg is not None and p.decode(msg.arbitration_id, msg.data)[1] == ControlFrame(
+            ControlRequest.CLEAR_FAULT
+        ):
+            rig.drive.heartbeat(DriveState.DISABLED)
+
+    thread = threading.Thread(target=drive_side)
+    thread.start()
+    rig.link.clear_fault(5 * SECOND_NS)
+    thread.join()
+    assert rig.link.drive_state is DriveState.DISABLED
+
+
+def test_clear_fault_of_a_drive_that_stays_faulted_names_the_fault(rig: Rig) -> None:
+    rig.drive.fault(FaultCode.ENCODER)
+    with pytest.raises(DriveFault, match=r"did not leave FAULT within 1 ms of ClearFault .*ENCODER"):
+        rig.link.clear_fault(1_000_000)
+
+
+def test_a_heartbeat_of_another_version_is_refused_naming_both(rig: Rig) -> None:
+    rig.link.request_enable()
+    rig.drive.send(FrameKind.HEARTBEAT, p.encode_heartbeat(p.HeartbeatFrame(DriveState.ENABLED, 3)))
+    with pytest.raises(DriveFault, match="native protocol version 3, this host version 2"):
+        rig.link.poll_enabled()
+    assert rig.link.drive_state is None  # nothing of that heartbeat was believed
+    assert rig.link.stats.version_mismatches == 1
+
+
+def test_a_version_1_drive_is_named_when_enabling_fails(rig: Rig) -> None:
+    rig.drive.raw(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x00"))
+    with pytest.raises(DriveFault, match=r"at 0x701 that look like a native protocol version 1 heartbeat"):
+        rig.link.enable(1_000_000)
+
+
+def test_feedback_sequence_restarting_on_enable_is_accepted(rig: Rig) -> None:
+    """A drive may restart its sequence when it enters ENABLED: no feedback is discarded."""
+    for seq in range(10, 20):
+        rig.drive.feedback(0, seq, Status(0))  # disabled: feedback flows, sequence 10..19
+    while rig.link.receive_feedback(0) is not None:
+        pass
+    rig.link.request_enable()
+    for seq in range(5):
+        rig.drive.feedback(seq, seq, Status.ENABLED)  # restarted at 0
+    got = [fb.seq for fb in iter(lambda: rig.link.receive_feedback(0), None) if fb]
+    assert got == [0, 1, 2, 3, 4]
+    assert rig.link.stats.stale_feedback == 0 and rig.link.stats.sequence_restarts == 1
+
+
+@pytest.mark.parametrize("padding", [b"\x00\x00", b"\xaa\xaa", b"\xff\xff"])
+def test_frames_padded_to_8_bytes_are_accepted(rig: Rig, padding: bytes) -> None:
+    rig.drive.send(FrameKind.HEARTBEAT, b"\x01\x02" + padding * 3)
+    rig.drive.send(FrameKind.FEEDBACK, p.encode_feedback(p.FeedbackFrame(-9, 4, Status.ENABLED)) + padding)
+    fb = rig.link.receive_feedback(0)
+    assert fb is not None and fb.counts == (-9,) and fb.seq == 4
+    assert rig.link.stats.malformed_frames == 0 and rig.link.drive_state is DriveState.ENABLED
+
+
+def test_a_frame_the_bus_cannot_deliver_is_an_event_not_an_end(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """udp_multicast raises CanOperationError for a datagram that is not a frame: skip it."""
+    real_recv = rig.host.recv
+    calls = iter([True, False])
+
+    def recv(timeout: float | None = None) -> can.Message | None:
+        if next(calls, False):
+            raise can.CanOperationError("could not unpack received message")
+        return real_recv(timeout)
+
+    monkeypatch.setattr(rig.host, "recv", recv)
+    rig.drive.feedback(3, 1)
+    fb = rig.link.receive_feedback(SECOND_NS)
+    assert fb is not None and fb.seq == 1
+    assert rig.rec.kinds()[0] == "MALFORMED_FRAME" and "could not unpack" in rig.rec.events[0].message
+    assert rig.link.stats.rx_errors == 1
+
+
+def test_a_broken_bus_still_ends_the_run(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    def recv(timeout: float | None = None) -> can.Message | None:
+        raise can.CanOperationError("network down")
+
+    monkeypatch.setattr(rig.host, "recv", recv)
+    with pytest.raises(DriveFault, match="failed 1000 times in a row: network down"):
+        rig.link.receive_feedback(SECOND_NS)
 
 
 def test_fault_while_enabling_raises(rig: Rig) -> None:
@@ -408,24 +519,54 @@ def test_fault_while_enabling_raises(rig: Rig) -> None:
         rig.link.wait_enabled(0)
 
 
-def test_safe_stop_sends_zero_and_disable(rig: Rig) -> None:
+def test_safe_stop_sends_one_stop_answering_the_newest_feedback(rig: Rig) -> None:
+    """Byte for byte: a zero COMMAND with the enable bit clear answering the newest feedback
+    (queued, not yet read: so the drive takes it as valid), then CONTROL disable; once."""
     rig.drive.feedback(0, 77)
     assert rig.link.receive_feedback(0) is not None
     rig.link.request_enable()
+    rig.link.send_command((5,), 77)  # the loop answered 77 ...
+    rig.drive.feedback(0, 78)  # ... and 78 is queued, unread, when the stop comes
     rig.link.safe_stop()
-    rig.link.safe_stop()  # repeatable: the same frames again
-    stop = [(1, CommandFrame(0, 77, False)), (1, ControlFrame(ControlRequest.DISABLE))]
-    assert rig.drive.received() == [(1, ControlFrame(ControlRequest.ENABLE)), *stop, *stop]
+    rig.link.safe_stop()  # one stop sequence: the second call sends nothing
+    rig.link.close()  # nor does close
+    sent = [(m.arbitration_id, bytes(m.data)) for m, is_rx in rig.rec.frames if not is_rx]
+    assert sent == [
+        (0x691, bytes.fromhex("0102")),  # CONTROL enable, version 2
+        (0x6A1, bytes.fromhex("0500cd")),  # 5 counts answering 77 (0x4D), enable bit set: 0xCD
+        (0x6A1, bytes.fromhex("00004e")),  # stop: 0 counts answering 78 (0x4E), enable bit clear
+        (0x691, bytes.fromhex("0002")),  # CONTROL disable, version 2
+    ]
     assert not rig.link.enable_requested
+
+
+def test_safe_stop_sends_no_command_to_a_drive_not_known_enabled(rig: Rig) -> None:
+    """A drive may fault on a COMMAND while DISABLED: the stop of a drive that never reported
+    ENABLED is CONTROL disable alone; after the next enable request a stop goes out again."""
+    rig.drive.feedback(0, 3, Status(0))
+    assert rig.link.receive_feedback(0) is not None
+    rig.link.safe_stop()
+    rig.link.request_enable()
+    rig.link.safe_stop()
+    assert rig.drive.received() == [
+        (1, ControlFrame(ControlRequest.DISABLE)),
+        (1, ControlFrame(ControlRequest.ENABLE)),
+        (1, ControlFrame(ControlRequest.DISABLE)),
+    ]
 
 
 def test_safe_stop_never_raises(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
     def failing_send(msg: can.Message, timeout: float | None = None) -> None:
         raise can.CanOperationError("bus off")
 
+    rig.drive.feedback(0, 0, Status.ENABLED)
+    assert rig.link.receive_feedback(0) is not None
+    rig.rec.events.clear()
     monkeypatch.setattr(rig.host, "send", failing_send)
     rig.link.safe_stop()
     assert rig.rec.kinds() == ["SEND_FAILED", "SEND_FAILED"]  # both frames were tried
+    rig.link.safe_stop()  # a stop that did not go out is tried again
+    assert rig.rec.kinds() == ["SEND_FAILED"] * 4
 
     def exploding_hook(ev: object) -> None:
         raise RuntimeError("logger is gone")
@@ -450,7 +591,7 @@ def test_close_stops_once_and_shuts_down_an_owned_bus(bus_pair: tuple[can.BusABC
         pass
     rig.link.close()
     rig.link.safe_stop()  # after close: nothing
-    assert rig.drive.received() == [(1, CommandFrame(0, 0, False)), (1, ControlFrame(ControlRequest.DISABLE))]
+    assert rig.drive.received() == [(1, ControlFrame(ControlRequest.DISABLE))]  # never enabled: no COMMAND
     assert shutdowns == [1]
     assert rig.link.closed
     with pytest.raises(DriveFault, match="closed"):
@@ -475,8 +616,8 @@ def test_hooks_see_every_frame_in_a_cycle(rig: Rig) -> None:
         rig.link.send_command(codes, fb.seq)
     rig.link.close()
     directions = [(m.arbitration_id, is_rx) for m, is_rx in rig.rec.frames]
-    cycle = [(0x181, True), (0x201, False)]
-    assert directions == [(0x601, False), (0x701, True), *(cycle * 5), (0x201, False), (0x601, False)]
+    cycle = [(0x6B1, True), (0x6A1, False)]
+    assert directions == [(0x691, False), (0x6C1, True), *(cycle * 5), (0x6A1, False), (0x691, False)]
 
 
 @pytest.mark.parametrize(
@@ -486,6 +627,7 @@ def test_hooks_see_every_frame_in_a_cycle(rig: Rig) -> None:
         ({"current_limit_A": 0.0001}, "drive.current_limit_A"),
         ({"current_limit_A": 100.0}, "drive.current_limit_A"),
         ({"node_id": 200}, "drive.node_id"),
+        ({"node_id": 16}, "drive.node_id"),
         ({"encoder_bits": 70}, "drive.encoder_bits"),
     ],
 )
@@ -494,3 +636,19 @@ def test_bad_drive_config_is_refused(change: dict[str, object], field: str) -> N
     with can.Bus(interface="virtual", channel=unique_channel()) as bus, pytest.raises(ConfigError) as info:
         NativeDriveLink(bus, config)
     assert info.value.field == field
+
+
+def test_sequence_restart_after_a_quick_disable_and_enable_is_accepted(rig: Rig) -> None:
+    """Disabled and enabled again within one period: no DISABLED feedback in between, only the
+    heartbeats; the restarted sequence is still accepted."""
+    rig.link.request_enable()
+    rig.drive.heartbeat(DriveState.ENABLED)
+    for seq in (40, 41, 42):
+        rig.drive.feedback(0, seq, Status.ENABLED)
+    rig.drive.heartbeat(DriveState.DISABLED)
+    rig.drive.heartbeat(DriveState.ENABLED)
+    rig.drive.feedback(0, 0, Status.ENABLED)
+    rig.drive.feedback(0, 1, Status.ENABLED)
+    got = [fb.seq for fb in iter(lambda: rig.link.receive_feedback(0), None) if fb]
+    assert got == [40, 41, 42, 0, 1]
+    assert rig.link.stats.stale_feedback == 0

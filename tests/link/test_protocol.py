@@ -34,13 +34,17 @@ VECTORS: list[tuple[p.Frame, FrameKind, str]] = [
     # 1433 = 0x0599 -> 99 05; seq 127, enable clear: 0x7F
     (CommandFrame(1433, 127, False), FrameKind.COMMAND, "99057f"),
     (CommandFrame(-32768, 0, True), FrameKind.COMMAND, "008080"),
-    (ControlFrame(ControlRequest.DISABLE), FrameKind.CONTROL, "00"),
-    (ControlFrame(ControlRequest.ENABLE), FrameKind.CONTROL, "01"),
-    (ControlFrame(ControlRequest.CLEAR_FAULT), FrameKind.CONTROL, "02"),
+    # request, then the protocol version (2)
+    (ControlFrame(ControlRequest.DISABLE), FrameKind.CONTROL, "0002"),
+    (ControlFrame(ControlRequest.ENABLE), FrameKind.CONTROL, "0102"),
+    (ControlFrame(ControlRequest.CLEAR_FAULT), FrameKind.CONTROL, "0202"),
+    (ControlFrame(ControlRequest.ENABLE, 1), FrameKind.CONTROL, "0101"),  # another version decodes as sent
     (FaultFrame(FaultCode.WATCHDOG, 10), FrameKind.FAULT, "010a"),
     (FaultFrame(FaultCode.BAD_FRAME, 0x81), FrameKind.FAULT, "0481"),
-    (HeartbeatFrame(DriveState.DISABLED), FrameKind.HEARTBEAT, "00"),
-    (HeartbeatFrame(DriveState.FAULT), FrameKind.HEARTBEAT, "02"),
+    # state, then the protocol version
+    (HeartbeatFrame(DriveState.DISABLED), FrameKind.HEARTBEAT, "0002"),
+    (HeartbeatFrame(DriveState.FAULT), FrameKind.HEARTBEAT, "0202"),
+    (HeartbeatFrame(DriveState.ENABLED, 3), FrameKind.HEARTBEAT, "0103"),
 ]
 
 
@@ -51,11 +55,32 @@ def test_exact_bytes(frame: p.Frame, kind: FrameKind, hex_bytes: str) -> None:
 
 
 def test_ids_follow_the_function_base_plus_node() -> None:
-    assert [p.frame_id(k, 1) for k in FrameKind] == [0x081, 0x181, 0x201, 0x601, 0x701]
-    assert p.frame_id(FrameKind.HEARTBEAT, 127) == 0x77F
-    assert p.split_id(0x205) == (FrameKind.COMMAND, 5)
-    with pytest.raises(ProtocolError, match=r"node_id: must be 0\.\.127, got 128"):
-        p.frame_id(FrameKind.FEEDBACK, 128)
+    assert [p.frame_id(k, 1) for k in FrameKind] == [0x681, 0x691, 0x6A1, 0x6B1, 0x6C1]
+    assert p.frame_id(FrameKind.HEARTBEAT, 15) == 0x6CF == p.ID_LAST
+    assert p.frame_id(FrameKind.FAULT, 0) == 0x680 == p.ID_FIRST
+    assert p.split_id(0x6A5) == (FrameKind.COMMAND, 5)
+    with pytest.raises(ProtocolError, match=r"node_id: the native protocol has nodes 0\.\.15, got 16"):
+        p.frame_id(FrameKind.FEEDBACK, 16)
+
+
+# CiA 301's predefined connection set and restricted CAN-IDs (NMT, SYNC/EMCY, TIME, PDOs, SDOs,
+# NMT error control, LSS and the reserved ranges): no native id may be one of them
+CANOPEN_IDS = (
+    {0x000, 0x080, 0x100}
+    | set(range(0x001, 0x080))  # restricted
+    | set(range(0x081, 0x100))  # EMCY
+    | set(range(0x101, 0x181))  # restricted
+    | set(range(0x181, 0x580))  # TPDO1..4 / RPDO1..4
+    | set(range(0x580, 0x680))  # SDO server->client, client->server
+    | set(range(0x6E0, 0x800))  # restricted, NMT error control (heartbeat, boot-up), LSS
+)
+
+
+def test_no_id_collides_with_canopen_predefined_connection_set() -> None:
+    ours = {p.frame_id(kind, node) for kind in FrameKind for node in range(p.NODE_ID_MAX + 1)}
+    assert len(ours) == len(FrameKind) * (p.NODE_ID_MAX + 1)
+    assert ours.isdisjoint(CANOPEN_IDS)
+    assert min(ours) == p.ID_FIRST and max(ours) == p.ID_LAST
 
 
 # --- hypothesis round trips for every frame type ---------------------------------------------------
@@ -71,13 +96,14 @@ command_frames = st.builds(
     seq=st.integers(0, 127),
     enable=st.booleans(),
 )
-control_frames = st.builds(ControlFrame, request=st.sampled_from(ControlRequest))
+versions = st.one_of(st.just(p.PROTOCOL_VERSION), st.integers(0, 255))  # decoded as sent
+control_frames = st.builds(ControlFrame, request=st.sampled_from(ControlRequest), version=versions)
 fault_frames = st.builds(FaultFrame, code=st.sampled_from(FaultCode), info=st.integers(0, 255))
-heartbeat_frames = st.builds(HeartbeatFrame, state=st.sampled_from(DriveState))
+heartbeat_frames = st.builds(HeartbeatFrame, state=st.sampled_from(DriveState), version=versions)
 any_frame = st.one_of(feedback_frames, command_frames, control_frames, fault_frames, heartbeat_frames)
 
 
-@given(frame=any_frame, node=st.integers(0, 127))
+@given(frame=any_frame, node=st.integers(0, 15))
 def test_round_trip_every_frame_type(frame: p.Frame, node: int) -> None:
     kind, payload = p.encode(frame)
     assert len(payload) == p.DLC[kind]
@@ -170,17 +196,26 @@ def test_encode_does_not_clamp() -> None:
 
 # --- decode: wrong DLC, reserved bits, unknown codes ---------------------------------------------------
 @pytest.mark.parametrize("kind", list(FrameKind))
-@pytest.mark.parametrize("delta", [-1, +1])
-def test_decode_wrong_dlc(kind: FrameKind, delta: int) -> None:
-    data = bytes(max(p.DLC[kind] + delta, 0))
+@pytest.mark.parametrize("length", [-1, 9])
+def test_decode_wrong_length(kind: FrameKind, length: int) -> None:
+    data = bytes(p.DLC[kind] - 1 if length < 0 else length)
     with pytest.raises(ProtocolError) as info:
         p.decode(p.frame_id(kind, 1), data)
-    assert str(info.value).startswith(f"{kind.name} frame: expected DLC {p.DLC[kind]}, got {len(data)}")
+    assert str(info.value).startswith(
+        f"{kind.name} frame: expected {p.DLC[kind]} bytes (padding up to 8 allowed), got {len(data)}"
+    )
+
+
+@given(frame=any_frame, padding=st.binary(max_size=8))
+def test_padded_frames_decode_to_the_same_frame(frame: p.Frame, padding: bytes) -> None:
+    kind, payload = p.encode(frame)
+    padded = (payload + padding)[:8]
+    assert p.decode(p.frame_id(kind, 2), padded) == (2, frame)
 
 
 def test_decode_empty_payload() -> None:
-    with pytest.raises(ProtocolError, match="HEARTBEAT frame: expected DLC 1, got 0"):
-        p.decode(0x701, b"")
+    with pytest.raises(ProtocolError, match=r"HEARTBEAT frame: expected 2 bytes .*, got 0 byte\(s\) -"):
+        p.decode(0x6C1, b"")
 
 
 @pytest.mark.parametrize("status", [0x10, 0x20, 0x80, 0xF1])
@@ -192,12 +227,14 @@ def test_decode_feedback_reserved_bits(status: int) -> None:
 @pytest.mark.parametrize(
     ("frame_id", "payload", "match"),
     [
-        (0x601, b"\x03", "CONTROL frame: unknown request 3"),
-        (0x081, b"\x00\x00", "FAULT frame: unknown fault code 0"),
-        (0x081, b"\x07\x00", "FAULT frame: unknown fault code 7"),
-        (0x701, b"\x03", "HEARTBEAT frame: unknown drive state 3"),
+        (0x691, b"\x03\x02", "CONTROL frame: unknown request 3"),
+        (0x681, b"\x00\x00", "FAULT frame: unknown fault code 0"),
+        (0x681, b"\x07\x00", "FAULT frame: unknown fault code 7"),
+        (0x6C1, b"\x03\x02", "HEARTBEAT frame: unknown drive state 3"),
         (0x100, b"", "id 0x100: not a frame of the native protocol"),
         (0x7FF, b"", "id 0x7FF: not a frame of the native protocol"),
+        (0x701, b"\x00", "id 0x701: not a frame of the native protocol"),  # version 1's heartbeat
+        (0x181, bytes(6), "id 0x181: not a frame of the native protocol"),  # version 1's feedback
         (0x800, b"", "id 0x800: not an 11-bit id"),
         (-1, b"", "not an 11-bit id"),
     ],
@@ -215,13 +252,14 @@ def test_decode_arbitrary_input_returns_a_frame_or_raises_protocol_error(
         node, frame = p.decode(arbitration_id, data)
     except ProtocolError:
         return
-    # whatever decodes is a canonical frame: it encodes back to the same id and bytes
+    # whatever decodes is a canonical frame: it encodes back to the same id and bytes (the
+    # padding of a padded frame aside)
     kind, payload = p.encode(frame)
     assert p.frame_id(kind, node) == arbitration_id
-    assert payload == data
+    assert payload == data[: len(payload)] and len(data) <= 8
 
 
-@given(kind=st.sampled_from(FrameKind), node=st.integers(0, 127), data=st.binary(min_size=0, max_size=8))
+@given(kind=st.sampled_from(FrameKind), node=st.integers(0, 15), data=st.binary(min_size=0, max_size=8))
 def test_decode_arbitrary_payload_of_our_ids(kind: FrameKind, node: int, data: bytes) -> None:
     try:
         got_node, frame = p.decode(p.frame_id(kind, node), data)
@@ -229,4 +267,4 @@ def test_decode_arbitrary_payload_of_our_ids(kind: FrameKind, node: int, data: b
         assert kind.name in str(exc)
         return
     assert got_node == node
-    assert p.encode(frame) == (kind, data)
+    assert p.encode(frame) == (kind, data[: p.DLC[kind]])

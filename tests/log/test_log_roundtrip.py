@@ -45,11 +45,15 @@ def _library_messages(path: Path) -> dict[str, list[Any]]:
     with path.open("rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         decoded: dict[str, list[Any]] = {}
-        for _schema, channel, message, obj in reader.iter_decoded_messages(
-            topics=["/dob_hil/sample", "/dob_hil/can", "/dob_hil/truth"]
-        ):
+        # one decoder factory decodes every channel, the events too (all ros2msg/cdr)
+        for _schema, channel, message, obj in reader.iter_decoded_messages():
             decoded.setdefault(channel.topic, []).append((message.log_time, obj))
-    events = [json.loads(m.data) for m in out.get("/dob_hil/event", [])]
+    assert len(decoded.get("/dob_hil/event", [])) == len(out.get("/dob_hil/event", []))
+    events = [
+        {"time_ns": obj.time_ns, "level": obj.level, "kind": obj.kind, "message": obj.message,
+         "data": json.loads(obj.data)}
+        for _, obj in decoded.pop("/dob_hil/event", [])
+    ]  # fmt: skip
     return {**decoded, "/dob_hil/event": events}
 
 

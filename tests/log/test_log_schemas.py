@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import struct
 
 import numpy as np
@@ -12,11 +13,15 @@ from mcap_ros2._dynamic import generate_dynamic
 
 from dob_hil.log.schemas import (
     CDR_HEADER,
+    EVENT_MSG_TEXT,
+    SCHEMA_EVENT,
     LogLayout,
     SchemaError,
     can_fields,
     cdr_offsets,
     channel_specs,
+    decode_event_cdr,
+    encode_event_cdr,
     msg_dtype,
     msg_text,
     parse_msg,
@@ -75,7 +80,7 @@ def test_mcap_ros2_decodes_our_packing_like_numpy(layout: LogLayout, rnd: object
             bits = 8 * f.primitive.size
             vals = [rnd.randrange(-(2 ** (bits - 1)), 2 ** (bits - 1)) for _ in range(n)]
         values.extend(vals)
-    packed = record_struct(fields).pack(1, 0, 0, 0x100, *values)[13:]
+    packed = record_struct(fields).pack(5, 0, 1, 0, 0, 0, 0x100, *values)[31:]
     assert packed[:4] == CDR_HEADER
     decoded = generate_dynamic("dob_hil/msg/Sample", msg_text(fields))["dob_hil/msg/Sample"](packed)
     row = np.frombuffer(packed[4:], dtype=msg_dtype(fields))[0]
@@ -95,7 +100,7 @@ def test_mcap_ros2_decodes_our_packing_like_numpy(layout: LogLayout, rnd: object
 def test_can_frame_is_23_bytes_and_data_zero_padded() -> None:
     fields = can_fields()
     assert msg_dtype(fields).itemsize == 23
-    packed = record_struct(fields).pack(2, 5, 27, 0x100, 5, 0x181, 0, 3, 0, b"\x01\x02\x03")[13:]
+    packed = record_struct(fields).pack(5, 49, 2, 0, 5, 5, 0x100, 5, 0x181, 0, 3, 0, b"\x01\x02\x03")[31:]
     decoded = generate_dynamic("dob_hil/msg/CanFrame", msg_text(fields))["dob_hil/msg/CanFrame"](packed)
     assert list(decoded.data) == [1, 2, 3, 0, 0, 0, 0, 0]
 
@@ -125,3 +130,30 @@ def test_constants_and_comments_take_no_bytes() -> None:
 def test_layout_rejects_bad_dimensions(bad: object) -> None:
     with pytest.raises(SchemaError, match="n_inputs"):
         LogLayout(2, bad, 1, 2)  # type: ignore[arg-type]
+
+
+@given(
+    st.integers(0, 2**64 - 1),
+    st.sampled_from(["info", "warning", "error"]),
+    st.text(max_size=40),
+    st.text(max_size=80),
+    st.dictionaries(st.text(max_size=8), st.integers(-(2**63), 2**63) | st.text(max_size=8), max_size=4),
+)
+@settings(max_examples=50, deadline=None)
+def test_event_cdr_round_trips_and_mcap_ros2_decodes_it(
+    time_ns: int, level: str, kind: str, message: str, data: dict[str, object]
+) -> None:
+    """The event message is ros2msg/cdr like every channel: mcap_ros2 decodes our bytes."""
+    text = json.dumps(data)
+    packed = encode_event_cdr(time_ns, level, kind, message, text)
+    ours = decode_event_cdr(packed)
+    assert ours == {"time_ns": time_ns, "level": level, "kind": kind,
+                    "message": message.encode("utf-8", "replace").decode(), "data": data}  # fmt: skip
+    theirs = generate_dynamic(SCHEMA_EVENT, EVENT_MSG_TEXT)[SCHEMA_EVENT](packed)
+    assert (theirs.time_ns, theirs.level, theirs.kind) == (time_ns, level, ours["kind"])
+    assert theirs.message == ours["message"] and json.loads(theirs.data) == data
+
+
+def test_every_channel_schema_is_named_dob_hil_msg() -> None:
+    for spec in channel_specs(LogLayout(2, 1, 1, 2)):
+        assert spec.schema_name.startswith("dob_hil/msg/") and spec.schema_encoding == "ros2msg"

@@ -8,11 +8,13 @@ import signal
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from dob_hil.errors import DobHilError
 from dob_hil.log import LogLayout, LogWriteError, LogWriter, read_log
 from dob_hil.log.bench import SyntheticRun
+from dob_hil.log.check import assert_complete, check_sequences
 
 LAYOUT = LogLayout(2, 1, 1, 2)
 GOOD = dict(
@@ -74,7 +76,8 @@ def test_full_backlog_drops_whole_batches_counted_and_reported(tmp_path: Path) -
     """Stop the writer process; the pipe (1 MiB) and a 64 KiB backlog fill; then records drop."""
     path = tmp_path / "overflow.mcap"
     run = SyntheticRun(LAYOUT)
-    log = LogWriter(path, LAYOUT, max_backlog_bytes=64 * 1024)
+    log = LogWriter(path, LAYOUT, max_backlog_bytes=64 * 1024, backpressure=False)
+    assert log._proc is not None
     pid = log._proc.pid
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -129,6 +132,7 @@ def test_writer_failure_mid_run_surfaces_in_flush_and_close(tmp_path: Path) -> N
             error = exc
             break
     assert error is not None and "File too large" in str(error)
+    assert "records so far lost (the file holds" in str(error)  # how much was lost
     with pytest.raises(LogWriteError, match="File too large"):
         log.flush()
     with pytest.raises(LogWriteError, match="File too large"):
@@ -145,3 +149,121 @@ def test_flush_is_lazy_until_due(tmp_path: Path) -> None:
         assert log.stats.enqueued_records == 1
     data: Any = read_log(tmp_path / "lazy.mcap")
     assert len(data.samples) == 1
+
+
+def test_backpressure_waits_for_a_stalled_writer_and_fails_after_the_stall_timeout(tmp_path: Path) -> None:
+    """Under backpressure nothing is dropped: a writer that takes nothing ends the run instead."""
+    log = LogWriter(tmp_path / "stall.mcap", LAYOUT, max_backlog_bytes=64 * 1024, stall_timeout_s=0.5)
+    assert log._proc is not None
+    pid = log._proc.pid
+    run = SyntheticRun(LAYOUT)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        with pytest.raises(LogWriteError, match=r"took nothing for 0\.5 s"):
+            for k in range(200_000):
+                run.period(log, k)
+                log.flush()
+        assert log.stats.dropped_records > 0  # the batch that could not be handed over
+        assert log.stats.backpressure_wait_ns >= 0.5e9
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    with pytest.raises(LogWriteError):
+        log.close()
+
+
+@pytest.fixture
+def cpu_hogs() -> Any:
+    """Two busy processes beside the test, as on a loaded machine."""
+    import subprocess
+    import sys
+
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        yield hogs
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+def test_backpressure_loses_nothing_beside_cpu_hogs(tmp_path: Path, cpu_hogs: Any) -> None:
+    """A loop far faster than the writer, a tiny backlog, two CPU hogs: every record arrives."""
+    path = tmp_path / "bp.mcap"
+    n = 60_000
+    run = SyntheticRun(LAYOUT)
+    with LogWriter(path, LAYOUT, max_backlog_bytes=16 * 1024, backpressure=True) as log:
+        for k in range(n):
+            run.period(log, k)
+            log.flush()
+    assert log.stats.dropped_records == 0
+    report = assert_complete(path)
+    assert report["/dob_hil/sample"].messages == n and report["/dob_hil/truth"].messages == n
+    data = read_log(path)
+    assert data.complete and data.metadata["summary"]["dropped_records"] == "0"
+    assert int(data.metadata["summary"]["log_backpressure_wait_ns"]) == log.stats.backpressure_wait_ns
+
+
+def test_records_from_another_thread_are_neither_lost_nor_duplicated(tmp_path: Path) -> None:
+    """The embedded real-time drive writes truth from its timer thread while the loop writes samples."""
+    import threading
+
+    path = tmp_path / "threads.mcap"
+    n = 40_000
+    with LogWriter(path, LAYOUT, flush_bytes=4096) as log:
+        stop = threading.Event()
+
+        def drive() -> None:
+            for k in range(n):
+                log.truth(k * 1000, (0.1, 0.2), (0.0,), (0.5,), k, 1)
+                if k % 500 == 0:
+                    log.event(k * 1000, "info", "drive", "from the timer thread")
+            stop.set()
+
+        thread = threading.Thread(target=drive)
+        thread.start()
+        k = 0
+        while not stop.is_set() or k < 1000:
+            log.sample(**{**GOOD, "time_ns": k * 1000, "seq": k})
+            log.frame_raw(k * 1000, 0x181, True, 2, b"\x01\x02", 0)
+            log.flush(force=k % 7 == 0)
+            k += 1
+        thread.join()
+    report = assert_complete(path)
+    assert report["/dob_hil/truth"].messages == n and report["/dob_hil/sample"].messages == k
+    truth = read_log(path).truth
+    assert np.array_equal(truth["period_index"], np.arange(n))
+
+
+def test_the_checker_finds_dropped_and_duplicated_records(tmp_path: Path) -> None:
+    """Records dropped under real-time policy show as missing sequence numbers."""
+    path = tmp_path / "drops.mcap"
+    run = SyntheticRun(LAYOUT)
+    log = LogWriter(path, LAYOUT, max_backlog_bytes=16 * 1024, backpressure=False)
+    assert log._proc is not None
+    os.kill(log._proc.pid, signal.SIGSTOP)
+    try:
+        k = 0
+        while log.stats.dropped_records < 100:
+            run.period(log, k)
+            log.flush()
+            k += 1
+    finally:
+        os.kill(log._proc.pid, signal.SIGCONT)
+    for j in range(k, k + 20):  # records after the drops: the drops become a gap
+        run.period(log, j)
+    log.flush(force=True)
+    log.close()
+    report = check_sequences(path)
+    assert report["/dob_hil/sample"].missing > 0 and report["/dob_hil/sample"].duplicates == 0
+    with pytest.raises(AssertionError, match="missing"):
+        assert_complete(path)
+
+
+def test_dev_null_runs_without_a_writer_process_and_closes(tmp_path: Path) -> None:
+    log = LogWriter(Path(os.devnull), LAYOUT)
+    assert log._proc is None
+    for k in range(100):
+        log.sample(**{**GOOD, "seq": k})
+        log.flush()
+    log.close({"exit_reason": "done"})
+    assert log.stats.enqueued_records == 100 and log.stats.dropped_records == 0

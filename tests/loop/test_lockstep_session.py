@@ -50,11 +50,11 @@ def test_paper_step_logs_every_sample_and_frame(paper_step: Config, log_path: Pa
     f = data.frames
     rx_fb = f[(f["direction"] == 0) & (f["arbitration_id"] == FrameKind.FEEDBACK + 1)]
     tx_cmd = f[(f["direction"] == 1) & (f["arbitration_id"] == FrameKind.COMMAND + 1)]
-    assert len(rx_fb) == 3333
+    assert len(rx_fb) == 3334  # and the feedback after the last command, read to answer it with the stop
     assert len(tx_cmd) >= 3333
     codes = tx_cmd["data"][:3333, :2].copy().view("<i2")[:, 0]
     np.testing.assert_array_equal(codes, s["dac_counts"][:, 0])
-    counts = rx_fb["data"][:, :4].copy().view("<i4")[:, 0]
+    counts = rx_fb["data"][:3333, :4].copy().view("<i4")[:, 0]
     np.testing.assert_array_equal(counts, s["counts"][:, 0])
     # ground truth on its own channel, the design and config attached
     assert len(data.truth) >= 3333

@@ -3,8 +3,12 @@
 Frames: every classic and FD frame in timestamp order (:mod:`dob_hil.analysis.frames`), written
 with ``can.BLFWriter`` (Vector binary logging format: CANalyzer/CANoe, SavvyCAN), ``can.ASCWriter``
 (Vector ASCII) or ``can.CSVWriter`` (python-can's CSV: timestamp, arbitration_id, extended,
-remote, error, dlc, data as base64). Rx/Tx comes from the logged direction; the channel is
-python-can's default (1 in BLF/ASC).
+remote, error, dlc, data as base64). Timestamps are put on the wall clock from the run's start
+time (:mod:`dob_hil.log.wallclock`), so BLF/ASC headers show when the run happened. Rx/Tx comes
+from the logged direction where the format has a place for it (BLF, ASC; python-can's CSV has
+none). The received copies of our own frames (udp_multicast echoes every frame to its sender) are
+dropped, as ``replay --to-bus`` drops them: each frame that was on the bus appears once. The
+channel is python-can's default (1 in BLF/ASC).
 
 Samples: one CSV row per sample, one column per scalar: array fields become ``name_0``,
 ``name_1``, ...; integers in decimal, floats with 17 significant digits (they read back to the
@@ -22,6 +26,7 @@ import numpy.typing as npt
 
 from dob_hil.analysis.frames import frame_messages
 from dob_hil.errors import DobHilError
+from dob_hil.log.schemas import CAN_TX
 
 StructArray = npt.NDArray[np.void]
 FRAME_FORMATS: Final = ("blf", "asc", "csv")
@@ -39,6 +44,27 @@ def default_export_path(log_path: Path, fmt: str, samples: bool) -> Path:
     if fmt == "csv":
         return log_path.with_name(f"{log_path.stem}-frames.csv")
     return log_path.with_name(f"{log_path.stem}.{fmt}")
+
+
+def own_echoes(frames: StructArray) -> npt.NDArray[np.bool_]:
+    """Mask of received frames whose id we transmit: the bus's copies of our own frames."""
+    tx = frames["direction"] == CAN_TX
+    if not tx.any():
+        return np.zeros(len(frames), dtype=np.bool_)
+    ids = np.unique(frames["arbitration_id"][tx])
+    return np.asarray(~tx & np.isin(frames["arbitration_id"], ids), dtype=np.bool_)
+
+
+def export_frames(
+    frames: StructArray, fd_frames: StructArray, *, wall_offset_ns: int = 0
+) -> tuple[StructArray, StructArray, int]:
+    """(frames, FD frames, echoes dropped): own echoes removed, timestamps moved by ``wall_offset_ns``."""
+    echoes = own_echoes(frames)
+    kept = frames[~echoes].copy()
+    fd_kept = fd_frames[~own_echoes(fd_frames)].copy() if len(fd_frames) else fd_frames.copy()
+    for arr in (kept, fd_kept):
+        arr["timestamp_ns"] = arr["timestamp_ns"].astype(np.int64) + np.int64(wall_offset_ns)
+    return kept, fd_kept, int(np.count_nonzero(echoes)) + (len(fd_frames) - len(fd_kept))
 
 
 def write_frames(frames: StructArray, fd_frames: StructArray, path: Path, fmt: str) -> int:

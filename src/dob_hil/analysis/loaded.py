@@ -84,6 +84,14 @@ def _int_or_none(text: str | None) -> int | None:
     return int(value)
 
 
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line (a hostile attachment's text never floods the terminal)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, RecursionError):
+        text = "nested too deeply"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _design_of(data: LogData, warnings: list[str]) -> Design | None:
     blob = data.attachments.get(DESIGN_ATTACHMENT)
     if blob is None:
@@ -91,8 +99,13 @@ def _design_of(data: LogData, warnings: list[str]) -> Design | None:
         return None
     try:
         design = Design.from_json(blob.decode("utf-8"))
-    except (UnicodeDecodeError, DobHilError) as exc:
-        warnings.append(f"{DESIGN_ATTACHMENT} attachment unusable ({exc}): model output and S/T unavailable")
+    except (ValueError, ArithmeticError, RecursionError, TypeError, LookupError, DobHilError) as exc:
+        # UnicodeDecodeError, JSON errors and integers over 4300 digits are ValueErrors; huge
+        # integers overflow floats; deep nesting exhausts the recursion limit
+        reason = _one_line(exc)
+        warnings.append(
+            f"{DESIGN_ATTACHMENT} attachment unusable ({reason}): model output and S/T unavailable"
+        )
         return None
     layout = data.layout
     if (design.n_states, design.n_inputs, design.n_outputs) != (
@@ -115,8 +128,8 @@ def _config_of(data: LogData, warnings: list[str]) -> Config | None:
         return None
     try:
         return parse_config_text(blob.decode("utf-8"), source=Path(CONFIG_ATTACHMENT))
-    except (UnicodeDecodeError, DobHilError) as exc:
-        warnings.append(f"{CONFIG_ATTACHMENT} attachment unusable ({exc})")
+    except (ValueError, ArithmeticError, RecursionError, TypeError, LookupError, DobHilError) as exc:
+        warnings.append(f"{CONFIG_ATTACHMENT} attachment unusable ({_one_line(exc)})")
         return None
 
 
@@ -156,8 +169,16 @@ def interpret(path: Path, data: LogData) -> LoadedLog:
     run = data.metadata.get("run", {})
     design = _design_of(data, warnings)
     config = _config_of(data, warnings)
-    if "summary" not in data.metadata:
+    summary = data.metadata.get("summary")
+    if summary is None:
         warnings.append("no summary record: the run did not close the log (crash or truncation)")
+    else:
+        dropped = _int_or_none(summary.get("dropped_records"))
+        if dropped:
+            warnings.append(
+                f"{dropped} log records were dropped while the run wrote (the log writer fell behind)"
+            )
+            data.complete = False
     bitrate = _int_or_none(run.get("bitrate_bps"))
     if bitrate is None and config is not None:
         bitrate = config.drive.bitrate_bps

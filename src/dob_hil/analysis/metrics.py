@@ -172,7 +172,7 @@ def _timing(log: LoadedLog, sig: Signals, first: int) -> dict[str, Any]:
     rx = s["rx_time_ns"].view(np.int64)  # ns since an epoch: below 2**63
     tx = s["tx_time_ns"].view(np.int64)
     seq = s["seq"].astype(np.int64)
-    latency = (tx - rx)[fb & (tx > 0)]
+    latency = (tx - rx)[fb & (tx >= rx)]  # a sample that sent no command keeps tx 0
     pair = fb[1:] & fb[:-1] & (np.diff(seq) == 1)
     jitter = np.abs(np.diff(rx) - log.period_ns)[pair]
     return {

@@ -18,8 +18,9 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from dob_hil.control.step import Gains, compile_step
+from dob_hil.control.step import compile_step
 from dob_hil.design import Design
+from dob_hil.design.tracking import controller_gains
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -33,8 +34,7 @@ def nominal_output(
     x0: FloatArray | None = None,
 ) -> FloatArray:
     """Model output y (len(x_ref) x p) of the nominal closed loop (module docstring)."""
-    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
-    step = compile_step(gains, dob_enabled)
+    step = compile_step(controller_gains(design), dob_enabled)  # with the reference feedforward
     update, predict = step.update, step.predict
     n_samples = len(x_ref)
     p, m = design.n_outputs, design.n_inputs

@@ -3,13 +3,21 @@
 Several logs (e.g. the same scenario with the DOB on and off) are overlaid, one colour per log:
 
 * ``output.png``: reference, plant output (true where the log has ground truth, else measured) and
-  model output (:mod:`dob_hil.analysis.model`), and plant minus model (the paper's Figures 6/8);
-* ``disturbance.png``: injected disturbance w and its estimate -u_dist (Figures 7/9);
-* ``sensitivity.png``: |S| and |T| at the plant output of each logged design (Figure 5);
-* ``tracking_error.png``: reference minus plant output, with the start of the metrics window;
-* ``command.png``: commanded and applied current with the current limit;
-* ``timing.png``: histograms of the feedback-to-command latency and the period jitter.
+  model output (:mod:`dob_hil.analysis.model`: the designed loop simulated without disturbance,
+  noise or quantisation), a zoom on the step transient, and plant minus model (paper Figures 6/8);
+* ``disturbance.png``: injected disturbance w and its estimate -u_dist with its gain (Figures 7/9);
+  a run without the DOB has no estimate and gets none drawn;
+* ``sensitivity.png``: |S| and |T| at the plant output of each logged design (Figure 5), with their
+  peaks and the injected disturbance frequencies;
+* ``tracking_error.png``: reference minus plant output, whole run and the metrics window;
+* ``command.png``: commanded and applied current with the current limit, one panel per log, on a
+  scale linear within the limit and logarithmic beyond (nothing clipped);
+* ``timing.png``: histograms of the feedback-to-command latency and the period jitter of the
+  real-time logs (a lockstep run's timing is not real time: no plot).
 
+Line conventions (shared with ``dob-hil design``'s plots): S blue and T red, DOB on solid and DOB
+off dashed; a log's colour is ``C<i>``. Legends sit outside the axes, so they never cover data.
+Text that comes from a log (names, units) is shown literally (``$`` never starts mathtext).
 Long series are decimated (min/max per bucket, :mod:`dob_hil.analysis.downsample`).
 """
 
@@ -33,6 +41,9 @@ FloatArray = npt.NDArray[np.float64]
 DPI = 110
 FIGSIZE = (9.0, 5.0)
 HIST_BINS = 80
+S_COLOR, T_COLOR = "tab:blue", "tab:red"
+RUN_STYLES = ("-", "--", ":", "-.")  # DOB on first: solid; DOB off: dashed
+LEGEND_FONTSIZE = 8
 
 
 @dataclass(frozen=True)
@@ -50,6 +61,11 @@ def _pyplot() -> Any:
     return plt
 
 
+def literal(text: str) -> str:
+    """``text`` as matplotlib shows it literally: ``$`` escaped, so no mathtext is parsed."""
+    return text.replace("\\", "\\\\").replace("$", r"\$")
+
+
 def _db(x: Any) -> Any:
     return 20.0 * np.log10(np.maximum(np.asarray(x, dtype=np.float64), 1e-300))
 
@@ -61,8 +77,42 @@ def _line(ax: Any, t: FloatArray, y: FloatArray, **kwargs: Any) -> None:
 
 def _unit(log: LoadedLog) -> tuple[str, str]:
     if log.design is not None:
-        return log.design.output_unit, log.design.input_unit
+        return literal(log.design.output_unit), literal(log.design.input_unit)
     return "unit", "A"
+
+
+def _label(log: LoadedLog) -> str:
+    return literal(log.label)
+
+
+def _title(inputs: list[PlotInput], what: str) -> str:
+    names: list[str] = []
+    for item in inputs:
+        if item.log.scenario not in names:
+            names.append(item.log.scenario)
+    return f"{literal(' vs '.join(names))}: {what}"
+
+
+def _legend_below(fig: Any, ax: Any, ncol: int = 2) -> Any:
+    """The axes' legend under the axes (outside the data area)."""
+    handles, labels = ax.get_legend_handles_labels()
+    if not handles:
+        return None
+    return ax.legend(
+        handles,
+        labels,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.14),
+        ncol=min(ncol, len(handles)),
+        fontsize=LEGEND_FONTSIZE,
+        frameon=False,
+    )
+
+
+def _save(plt: Any, fig: Any, out: Path) -> Path:
+    fig.savefig(out, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return out
 
 
 def _model_outputs(inputs: list[PlotInput]) -> list[FloatArray | None]:
@@ -97,69 +147,157 @@ def _model_outputs(inputs: list[PlotInput]) -> list[FloatArray | None]:
     return out
 
 
+def step_window(t_s: FloatArray, y_ref: FloatArray, y: FloatArray) -> tuple[float, float] | None:
+    """(start, end) of the step transient: from just before the step (the reference's first jump,
+    or a run that starts away from its reference) to a few rise times after the output first
+    reaches 90 % of it; None without a step."""
+    if len(t_s) < 4:
+        return None
+    span = float(max(np.max(y_ref), np.max(y)) - min(np.min(y_ref), np.min(y)))
+    if not span > 0:
+        return None
+    jumps = np.flatnonzero(np.abs(np.diff(y_ref)) > 0.2 * span)
+    if abs(float(y_ref[0]) - float(y[0])) > 0.2 * span:
+        k, before = 0, float(y[0])  # the run starts with the step
+    elif len(jumps):
+        k = int(jumps[0]) + 1
+        before = float(y_ref[k - 1])
+    else:
+        return None
+    after = float(y_ref[k])
+    target = before + 0.9 * (after - before)
+    reached = np.flatnonzero((y[k:] >= target) if after > before else (y[k:] <= target))
+    dt = float(t_s[1] - t_s[0])
+    total = float(t_s[-1] - t_s[0])
+    rise_s = float(t_s[k + reached[0]] - t_s[k]) if len(reached) else 0.05 * total
+    width = min(max(4.0 * rise_s, 20 * dt), 0.5 * total)
+    start = max(float(t_s[0]), float(t_s[k]) - 0.1 * width)
+    return start, start + width
+
+
 def _plot_output(plt: Any, inputs: list[PlotInput], models: list[FloatArray | None], out: Path) -> Path:
-    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9.0, 7.0), sharex=True, height_ratios=(2, 1))
-    y_unit = _unit(inputs[0].log)[0]
     first = inputs[0].signals
-    _line(ax, first.t_s, first.y_ref[:, 0], color="k", lw=1.0, ls=":", label="reference")
-    shown_models: list[int] = []
+    truth0 = first.has_truth.any()
+    window = step_window(first.t_s, first.y_ref[:, 0], (first.y_true if truth0 else first.y_meas)[:, 0])
+    fig = plt.figure(figsize=(11.0, 7.5))
+    grid = fig.add_gridspec(2, 3 if window else 1, height_ratios=(2, 1), hspace=0.4, wspace=0.3)
+    ax = fig.add_subplot(grid[0, :2] if window else grid[0, 0])
+    zoom = fig.add_subplot(grid[0, 2]) if window else None
+    ax2 = fig.add_subplot(grid[1, :2] if window else grid[1, 0], sharex=ax)
+    y_unit = _unit(inputs[0].log)[0]
+    refs: list[FloatArray] = []
     for i, (item, model) in enumerate(zip(inputs, models, strict=True)):
         sig, color = item.signals, f"C{i}"
+        targets = [a for a in (ax, zoom) if a is not None]
+        if not any(len(r) == len(sig.y_ref) and np.array_equal(r, sig.y_ref[:, 0]) for r in refs):
+            refs.append(sig.y_ref[:, 0])
+            ref_label = "reference" if i == 0 else f"reference: {_label(item.log)}"
+            for a in targets:
+                _line(a, sig.t_s, sig.y_ref[:, 0], color="k", lw=1.0, ls=":", label=ref_label)
         truth = sig.has_truth.any()
         y = sig.y_true if truth else sig.y_meas
-        _line(
-            ax,
-            sig.t_s,
-            y[:, 0],
-            color=color,
-            lw=1.2,
-            label=f"plant output{'' if truth else ' (measured)'}: {item.log.label}",
-        )
+        for a in targets:
+            _line(a, sig.t_s, y[:, 0], color=color, lw=1.3,
+                  label=f"plant output{'' if truth else ' (measured)'}: {_label(item.log)}")  # fmt: skip
         if model is None:
             continue
-        if not any(models[j] is model for j in shown_models):
-            _line(
-                ax,
-                sig.t_s,
-                model[:, 0],
-                color="0.4",
-                lw=1.0,
-                ls="--",
-                label="model output" if not shown_models else f"model output ({item.log.label})",
+        shared = [j for j, m in enumerate(models) if m is model]
+        if shared[0] == i:  # draw each distinct model once, saying which runs it belongs to
+            runs = (
+                ("both runs" if len(inputs) == 2 else "all runs")
+                if len(shared) == len(inputs) > 1
+                else ", ".join(_label(inputs[j].log) for j in shared)
             )
-            shown_models.append(i)
-        _line(ax2, sig.t_s, y[:, 0] - model[:, 0], color=color, lw=1.0, label=item.log.label)
-    ax.set(ylabel=f"output [{y_unit}]", title=f"{inputs[0].log.scenario}: plant output vs model output")
+            for a in targets:
+                _line(a, sig.t_s, model[:, 0], color="0.35", lw=1.0, ls=(0, (5, 2 + 2 * i)),
+                      label=f"model output (nominal loop, no disturbance): {runs}")  # fmt: skip
+        _line(ax2, sig.t_s, y[:, 0] - model[:, 0], color=color, lw=1.0, label=_label(item.log))
+    ax.set(ylabel=f"output [{y_unit}]", title=_title(inputs, "plant output vs model output"))
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    ax2.set(xlabel="time [s]", ylabel=f"plant - model [{y_unit}]")
+    ax.tick_params(labelbottom=True)
+    ax.set_xlabel("time [s]")
+    if zoom is not None and window is not None:
+        zoom.set_xlim(*window)
+        lo, hi = _visible_range(zoom, *window)
+        zoom.set_ylim(lo, hi)
+        zoom.set(xlabel="time [s]", ylabel=f"output [{y_unit}]",
+                 title=f"step transient ({1000 * (window[1] - window[0]):.0f} ms)")  # fmt: skip
+        zoom.grid(True, alpha=0.3)
+        zoom.xaxis.set_major_locator(plt.MaxNLocator(4))
+        ax.axvspan(*window, color="0.85", alpha=0.5, lw=0, label="zoomed")
+    ax2.set(xlabel="time [s]", ylabel=f"plant - model [{y_unit}]", title="plant output minus model output")
     ax2.grid(True, alpha=0.3)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    handles, labels = ax.get_legend_handles_labels()
+    # one legend for all panels, under the figure: the lower panel's colours are the runs above
+    ax2.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.03, 1.0), fontsize=LEGEND_FONTSIZE,
+               frameon=False)  # fmt: skip
+    return _save(plt, fig, out)
 
 
-def _plot_disturbance(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
+def _visible_range(ax: Any, t0: float, t1: float) -> tuple[float, float]:
+    lo, hi = np.inf, -np.inf
+    for line in ax.get_lines():
+        x = np.asarray(line.get_xdata(), dtype=np.float64)
+        y = np.asarray(line.get_ydata(), dtype=np.float64)
+        sel = (x >= t0) & (x <= t1) & np.isfinite(y)
+        if sel.any():
+            lo, hi = min(lo, float(y[sel].min())), max(hi, float(y[sel].max()))
+    if not np.isfinite(lo):
+        return ax.get_ylim()  # type: ignore[no-any-return]
+    pad = 0.05 * (hi - lo or 1.0)
+    return lo - pad, hi + pad
+
+
+def estimate_gain(w: FloatArray, estimate: FloatArray) -> float | None:
+    """Least-squares gain g of ``estimate ~ g w`` (None without a disturbance)."""
+    ok = np.isfinite(w) & np.isfinite(estimate)
+    ww = float(np.dot(w[ok], w[ok]))
+    if ww <= 0.0:
+        return None
+    return float(np.dot(w[ok], estimate[ok])) / ww
+
+
+def _plot_disturbance(plt: Any, inputs: list[PlotInput], from_s: float, out: Path) -> Path:
     fig, ax = plt.subplots(figsize=FIGSIZE)
     u_unit = _unit(inputs[0].log)[1]
-    shown_w = False
+    shown_w: list[FloatArray] = []
+    notes: list[str] = []
     for i, item in enumerate(inputs):
         sig, color = item.signals, f"C{i}"
-        if sig.has_truth.any() and not shown_w:
-            _line(ax, sig.t_s, sig.w_A[:, 0], color="k", lw=1.2, label="disturbance w (injected)")
-            shown_w = True
-        u_dist = np.asarray(item.log.data.samples["u_dist"][:, 0], dtype=np.float64)
-        _line(ax, sig.t_s, -u_dist, color=color, lw=1.0, label=f"estimate -u_dist: {item.log.label}")
+        w = sig.w_A[:, 0]
+        if sig.has_truth.any() and not any(len(s) == len(w) and np.array_equal(s, w, equal_nan=True)
+                                           for s in shown_w):  # fmt: skip
+            label = "disturbance w (injected)" if not shown_w else f"disturbance w: {_label(item.log)}"
+            _line(ax, sig.t_s, w, color="k", lw=1.4, ls=RUN_STYLES[len(shown_w) % 4], label=label)
+            shown_w.append(w)
+        if not item.log.dob_enabled:
+            notes.append(f"{_label(item.log)}: DOB off, no estimate")
+            continue
+        estimate = -np.asarray(item.log.data.samples["u_dist"][:, 0], dtype=np.float64)
+        window = sig.t_s >= from_s
+        gain = estimate_gain(w[window], estimate[window]) if sig.has_truth.any() else None
+        gain_text = f", gain {gain:.2f} x w" if gain is not None else ""
+        _line(ax, sig.t_s, estimate, color=color, lw=1.1,
+              label=f"estimate -u_dist: {_label(item.log)}{gain_text}")  # fmt: skip
+    for note in notes:
+        ax.plot([], [], ls="none", label=note)
     ax.set(
-        xlabel="time [s]",
-        ylabel=f"current [{u_unit}]",
-        title=f"{inputs[0].log.scenario}: disturbance and its estimate",
+        xlabel="time [s]", ylabel=f"current [{u_unit}]", title=_title(inputs, "disturbance and its estimate")
     )
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    _legend_below(fig, ax, ncol=2)
+    return _save(plt, fig, out)
+
+
+def _sine_frequencies(inputs: list[PlotInput]) -> list[float]:
+    freqs: list[float] = []
+    for item in inputs:
+        if item.log.config is None:
+            continue
+        for d in item.log.config.sim.disturbances:
+            if d.kind == "sine" and d.frequency_hz > 0 and d.frequency_hz not in freqs:
+                freqs.append(d.frequency_hz)
+    return sorted(freqs)
 
 
 def _plot_sensitivity(plt: Any, inputs: list[PlotInput], out: Path) -> Path | None:
@@ -170,101 +308,105 @@ def _plot_sensitivity(plt: Any, inputs: list[PlotInput], out: Path) -> Path | No
             continue
         if any(d == other and item.log.dob_enabled == on for other, on, _ in curves):
             continue
-        curves.append((d, item.log.dob_enabled, item.log.label))
+        curves.append((d, item.log.dob_enabled, _label(item.log)))
     if not curves:
         return None
     fig, ax = plt.subplots(figsize=FIGSIZE)
+    nyquist_hz = 0.5e9 / min(design.period_ns for design, _, _ in curves)
     for i, (design, on, label) in enumerate(curves):
-        nyquist_hz = 0.5e9 / design.period_ns
-        f_hz = np.logspace(np.log10(nyquist_hz) - 4.0, np.log10(nyquist_hz), 800)
+        ny = 0.5e9 / design.period_ns
+        # stop short of Nyquist, where the discrete loop's response bends sharply (no notch)
+        f_hz = np.logspace(np.log10(ny) - 4.0, np.log10(0.97 * ny), 800)
         S, T = sensitivity_response(design, 2.0 * np.pi * f_hz, on)
-        ax.semilogx(f_hz, _db(max_singular_value(S)), color=f"C{i}", ls="-", label=f"S: {label}")
-        ax.semilogx(f_hz, _db(max_singular_value(T)), color=f"C{i}", ls="--", label=f"T: {label}")
-    ax.set(
-        xlabel="frequency [Hz]",
-        ylabel="magnitude [dB]",
-        title=f"{inputs[0].log.scenario}: sensitivity S and complementary sensitivity T at the plant output",
-    )
+        style = RUN_STYLES[i % len(RUN_STYLES)] if len(curves) > 2 else ("-" if on else "--")
+        for name, resp, color in (("S", S, S_COLOR), ("T", T, T_COLOR)):
+            mag = _db(max_singular_value(resp))
+            k = int(np.argmax(mag))
+            peaked = 0 < k < len(mag) - 1 and mag[k] > mag[0] + 0.05  # a resonance, not a plateau
+            peak = f" (peak {mag[k]:.1f} dB at {f_hz[k]:.3g} Hz)" if peaked else ""
+            ax.semilogx(f_hz, mag, color=color, ls=style, lw=1.3, label=f"{name}: {label}{peak}")
+            if peaked:
+                ax.plot(f_hz[k], mag[k], marker="o", ms=5, color=color, ls="none")
+    for f in _sine_frequencies(inputs):
+        ax.axvline(f, color="0.5", lw=0.8, ls="-.", label=f"disturbance {f:g} Hz")
+    ax.axvline(nyquist_hz, color="k", lw=0.8, ls=":", label=f"Nyquist {nyquist_hz:.0f} Hz")
+    ax.set(xlabel="frequency [Hz]", ylabel="magnitude [dB]",
+           title=_title(inputs, "S and T at the plant output"))  # fmt: skip
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    _legend_below(fig, ax, ncol=2)
+    return _save(plt, fig, out)
 
 
 def _plot_tracking(plt: Any, inputs: list[PlotInput], from_s: float, out: Path) -> Path:
-    fig, ax = plt.subplots(figsize=FIGSIZE)
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9.0, 7.0), height_ratios=(1, 1))
+    y_unit = _unit(inputs[0].log)[0]
     for i, item in enumerate(inputs):
         sig = item.signals
         truth = sig.has_truth.any()
         e = sig.y_ref[:, 0] - (sig.y_true if truth else sig.y_meas)[:, 0]
-        _line(
-            ax,
-            sig.t_s,
-            e,
-            color=f"C{i}",
-            lw=1.0,
-            label=f"{item.log.label}{'' if truth else ' (vs measured)'}",
-        )
+        label = f"{_label(item.log)}{'' if truth else ' (vs measured)'}"
+        _line(ax, sig.t_s, e, color=f"C{i}", lw=1.0, label=label)
+        window = sig.t_s >= from_s
+        if window.any():
+            _line(ax2, sig.t_s[window], e[window], color=f"C{i}", lw=1.0, label=label)
     ax.axvline(from_s, color="0.5", ls=":", lw=1.0, label=f"metrics window from {from_s:g} s")
-    ax.set(
-        xlabel="time [s]",
-        ylabel=f"reference - output [{_unit(inputs[0].log)[0]}]",
-        title=f"{inputs[0].log.scenario}: tracking error",
-    )
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+    ax.set(xlabel="time [s]", ylabel=f"reference - output [{y_unit}]",
+           title=_title(inputs, "tracking error, whole run"))  # fmt: skip
+    ax2.set(xlabel="time [s]", ylabel=f"reference - output [{y_unit}]",
+            title=f"tracking error from {from_s:g} s (the metrics window)")  # fmt: skip
+    for a in (ax, ax2):
+        a.grid(True, alpha=0.3)
+    fig.subplots_adjust(hspace=0.45)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=LEGEND_FONTSIZE, frameon=False)
+    return _save(plt, fig, out)
 
 
 def _plot_command(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
-    fig, ax = plt.subplots(figsize=FIGSIZE)
-    limits: set[float] = set()
-    for i, item in enumerate(inputs):
+    n = len(inputs)
+    fig, axes = plt.subplots(n, 1, figsize=(9.0, 2.0 + 2.6 * n), sharex=True, squeeze=False)
+    u_unit = _unit(inputs[0].log)[1]
+    for i, (item, ax) in enumerate(zip(inputs, axes[:, 0], strict=True)):
         s, t = item.log.data.samples, item.signals.t_s
-        _line(
-            ax,
-            t,
-            np.asarray(s["u_cmd_a"][:, 0], dtype=np.float64),
-            color=f"C{i}",
-            lw=0.8,
-            alpha=0.5,
-            label=f"commanded: {item.log.label}",
-        )
-        _line(
-            ax,
-            t,
-            np.asarray(s["u_applied_a"][:, 0], dtype=np.float64),
-            color=f"C{i}",
-            lw=1.2,
-            label=f"applied: {item.log.label}",
-        )
-        if item.log.current_limit_A is not None:
-            limits.add(item.log.current_limit_A)
-    for limit in sorted(limits):
-        ax.axhline(limit, color="r", ls="--", lw=0.8, label=f"limit +-{limit:g}")
-        ax.axhline(-limit, color="r", ls="--", lw=0.8)
-    if limits:  # the commanded current can be far beyond the limit: keep the applied range readable
-        top = 3.0 * max(limits)
-        lo, hi = ax.get_ylim()
-        ax.set_ylim(max(lo, -top), min(hi, top))
-    ax.set(
-        xlabel="time [s]",
-        ylabel=f"current [{_unit(inputs[0].log)[1]}]",
-        title=f"{inputs[0].log.scenario}: current command and saturation limits",
-    )
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+        cmd = np.asarray(s["u_cmd_a"][:, 0], dtype=np.float64)
+        applied = np.asarray(s["u_applied_a"][:, 0], dtype=np.float64)
+        _line(ax, t, cmd, color="0.3", lw=0.8, ls="--", label="commanded (before the limit)")
+        _line(ax, t, applied, color=f"C{i}", lw=1.3, label="applied (limited, quantised)")
+        limit = item.log.current_limit_A
+        if limit is not None:
+            ax.axhline(limit, color="r", ls=":", lw=1.0, label=f"current limit +-{limit:g} {u_unit}")
+            ax.axhline(-limit, color="r", ls=":", lw=1.0)
+            # linear within the limit, logarithmic beyond: a 30 A spike and a 0.2 A ripple both show
+            ax.set_yscale("symlog", linthresh=limit, linscale=2.0)
+            top = max(float(np.nanmax(np.abs(cmd))) if len(cmd) else limit, limit) * 1.3
+            ax.set_ylim(-top, top)
+            ax.set_yticks(_symlog_ticks(limit, top))
+            ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _pos: f"{v:g}"))
+            ax.yaxis.set_minor_locator(plt.NullLocator())
+        ax.set(ylabel=f"current [{u_unit}]", title=_label(item.log))
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=LEGEND_FONTSIZE, frameon=False)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(_title(inputs, "current command and limit (symmetric log scale beyond the limit)"))
+    return _save(plt, fig, out)
 
 
-def _plot_timing(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
+def _symlog_ticks(limit: float, top: float) -> list[float]:
+    """Ticks of the command axis: -limit, -limit/2, 0, limit/2, limit, then decades beyond."""
+    ticks = [-limit, -0.5 * limit, 0.0, 0.5 * limit, limit]
+    decade = 10.0 ** np.ceil(np.log10(limit * 1.5))
+    while decade <= top:
+        ticks += [decade, -decade]
+        decade *= 10.0
+    return sorted(ticks)
+
+
+def _plot_timing(plt: Any, inputs: list[PlotInput], out: Path) -> Path | None:
+    """Real-time logs only: a lockstep run's times are host wall-clock times of a simulation."""
+    realtime = [(i, item) for i, item in enumerate(inputs) if item.log.mode != "lockstep"]
+    if not realtime:
+        return None
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11.0, 4.5))
-    for i, item in enumerate(inputs):
+    for i, item in realtime:
         s, fb = item.log.data.samples, item.signals.has_feedback
         rx = s["rx_time_ns"].astype(np.int64)
         tx = s["tx_time_ns"].astype(np.int64)
@@ -273,17 +415,15 @@ def _plot_timing(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
         jitter_us = np.abs(np.diff(rx) - item.log.period_ns)[pair] * 1e-3
         for ax, values in ((ax1, latency_us), (ax2, jitter_us)):
             if len(values):
-                ax.hist(values, bins=HIST_BINS, color=f"C{i}", alpha=0.5, log=True, label=item.log.label)
+                ax.hist(values, bins=HIST_BINS, color=f"C{i}", alpha=0.5, log=True, label=_label(item.log))
     ax1.set(xlabel="feedback receive -> command send [us]", ylabel="samples", title="latency")
     ax2.set(xlabel="|receive interval - period| [us]", ylabel="samples", title="period jitter")
     for ax in (ax1, ax2):
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8)
-    if any(item.log.mode == "lockstep" for item in inputs):
-        fig.suptitle("lockstep: host wall-clock times of a simulation faster than real time", fontsize=9)
-    fig.savefig(out, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return out
+        ax.xaxis.set_major_locator(plt.MaxNLocator(5))
+    _legend_below(fig, ax1, ncol=1)
+    fig.suptitle(_title([item for _, item in realtime], "real-time timing"))
+    return _save(plt, fig, out)
 
 
 def write_plots(inputs: list[PlotInput], out_dir: Path, *, from_s: float) -> list[Path]:
@@ -295,12 +435,14 @@ def write_plots(inputs: list[PlotInput], out_dir: Path, *, from_s: float) -> lis
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [
         _plot_output(plt, inputs, _model_outputs(inputs), out_dir / "output.png"),
-        _plot_disturbance(plt, inputs, out_dir / "disturbance.png"),
+        _plot_disturbance(plt, inputs, from_s, out_dir / "disturbance.png"),
     ]
     sens = _plot_sensitivity(plt, inputs, out_dir / "sensitivity.png")
     if sens is not None:
         paths.append(sens)
     paths.append(_plot_tracking(plt, inputs, from_s, out_dir / "tracking_error.png"))
     paths.append(_plot_command(plt, inputs, out_dir / "command.png"))
-    paths.append(_plot_timing(plt, inputs, out_dir / "timing.png"))
+    timing = _plot_timing(plt, inputs, out_dir / "timing.png")
+    if timing is not None:
+        paths.append(timing)
     return paths

@@ -23,8 +23,9 @@ import numpy.typing as npt
 from dob_hil.analysis.loaded import LoadedLog
 from dob_hil.analysis.rerun import MissingPolicy, Rerun, rerun
 from dob_hil.config import Config, DriveConfig
-from dob_hil.control.step import Gains, compile_step
+from dob_hil.control.step import compile_step
 from dob_hil.design import Design
+from dob_hil.design.tracking import controller_gains, tracking_map
 from dob_hil.errors import DesignError, DobHilError
 from dob_hil.link.native import DacQuantizer
 from dob_hil.log.schemas import FLAG_SATURATED
@@ -89,8 +90,7 @@ def logged_missing_policy(log: LoadedLog, notes: list[str]) -> MissingPolicy:
 
 
 def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
-    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
-    step = compile_step(gains, log.dob_enabled)
+    step = compile_step(controller_gains(design), log.dob_enabled)  # with the reference feedforward
     return rerun(step, DacQuantizer(drive).quantize, log.data.samples, design.C, missing, log.data.events)
 
 
@@ -101,12 +101,13 @@ def _bits(values: npt.NDArray[Any]) -> npt.NDArray[Any]:
     return a.astype(np.int64)
 
 
-def _reference(log: LoadedLog, config: Config) -> npt.NDArray[np.float64] | None:
+def _reference(log: LoadedLog, config: Config, design: Design) -> npt.NDArray[np.float64] | None:
     from dob_hil.control.reference import make_reference
 
     n_states = log.data.layout.n_states
     try:
-        ref = make_reference(config.reference, n_states, config.plant.period_s)
+        t = tracking_map(design)
+        ref = make_reference(config.reference, n_states, config.plant.period_s, state_map=(t.Nx, t.Nv))
     except DobHilError:
         return None
     seqs = log.data.samples["seq"].tolist()
@@ -133,7 +134,7 @@ def verify(log: LoadedLog, *, max_reported: int = MAX_REPORTED) -> VerifyResult:
         ("saturated", (s["flags"] & FLAG_SATURATED) != 0, r.saturated),
     ]
     if log.config is not None:
-        x_ref = _reference(log, log.config)
+        x_ref = _reference(log, log.config, design)
         if x_ref is None:
             notes.append("the reference could not be rebuilt from the config; x_ref not checked")
         else:

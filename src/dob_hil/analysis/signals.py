@@ -76,7 +76,6 @@ def derive_signals(log: LoadedLog) -> Signals:
     x_ref = s["x_ref"]
     y_meas = s["position"]
     has_fb = (s["flags"] & FLAG_FEEDBACK_MISSING) == 0
-    has_fb &= s["rx_time_ns"] != 0
     design = log.design
     C = design.C if design is not None else np.eye(p, log.data.layout.n_states)
     C_cont = design.C_cont if design is not None else np.eye(p, n_plant)

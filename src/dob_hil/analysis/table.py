@@ -88,9 +88,12 @@ def _rows(metrics: list[dict[str, Any]]) -> list[Row]:
     return rows
 
 
-def format_table(metrics: list[dict[str, Any]], labels: list[str]) -> str:
-    """The table, then the notes and warnings of each log (prefixed with its column title)."""
+def format_table(metrics: list[dict[str, Any]], labels: list[str], output_unit: str = "") -> str:
+    """The table, then the notes and warnings of each log (prefixed with its column title).
+    ``output_unit`` labels the rows in the plant's output unit (``tracking error rms [rev]``)."""
     rows = _rows(metrics)
+    if output_unit:
+        rows = [(f"{n} [{output_unit}]" if n.startswith("tracking error") else n, g) for n, g in rows]
     cells = [[get(m) for m in metrics] for _, get in rows]
     first = max(len(name) for name, _ in rows)
     widths = [max(len(label), *(len(row[j]) for row in cells)) for j, label in enumerate(labels)]

@@ -40,6 +40,46 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def comparison_warnings(logs: list[Any]) -> list[str]:
+    """What makes logs compared side by side not like for like: different plants, periods,
+    output units or references (the plots overlay them on one axis)."""
+    import numpy as np
+
+    out: list[str] = []
+    if len(logs) < 2:
+        return out
+    first = logs[0]
+    for log in logs[1:]:
+        if log.period_ns != first.period_ns:
+            out.append(
+                f"{log.path.name} has a period of {log.period_ns / 1000:g} us, {first.path.name} "
+                f"{first.period_ns / 1000:g} us: the logs are compared on different time grids"
+            )
+        a, b = first.design, log.design
+        if a is not None and b is not None:
+            if (
+                a.A.shape != b.A.shape
+                or a.B.shape != b.B.shape
+                or not (
+                    np.array_equal(a.A, b.A)
+                    and np.array_equal(a.B, b.B)
+                    and np.array_equal(a.C_cont, b.C_cont)
+                )
+            ):
+                out.append(
+                    f"{log.path.name} and {first.path.name} are runs of different plants (A, B or C differ)"
+                )
+            elif a.output_unit != b.output_unit:
+                out.append(
+                    f"{log.path.name} measures in {b.output_unit!r}, {first.path.name} in {a.output_unit!r}"
+                )
+        s1, s2 = first.data.samples, log.data.samples
+        n = min(len(s1), len(s2))
+        if n and not np.array_equal(s1["x_ref"][:n], s2["x_ref"][:n]):
+            out.append(f"{log.path.name} and {first.path.name} follow different references")
+    return out
+
+
 def analyze_logs(
     paths: list[Path],
     *,
@@ -47,10 +87,12 @@ def analyze_logs(
     plots_dir: Path | None,
     as_json: bool,
     plots: bool = True,
+    table_path: Path | None = None,
 ) -> list[dict[str, Any]]:
     """Read each log, compute its metrics over ``from_s`` .. end, print them (table or JSON on
     stdout, warnings on stderr), write the overlaid plots (unless ``plots`` is False) into
-    ``plots_dir`` (None: :func:`default_plots_dir`) and return the metrics, one dict per log.
+    ``plots_dir`` (None: :func:`default_plots_dir`), the table also into ``table_path`` if given,
+    and return the metrics, one dict per log.
     Raises LogReadError for a file that is no log at all, ConfigError for a bad ``from_s``."""
     from dob_hil.analysis.loaded import ANALYSIS_FIELDS, load_log
     from dob_hil.analysis.metrics import compute_metrics
@@ -62,7 +104,13 @@ def analyze_logs(
     if not (math.isfinite(from_s) and from_s >= 0.0):
         raise ConfigError("--from", f"must be a number of seconds >= 0, got {from_s}")
     paths = [Path(p) for p in paths]
+    if plots:  # refused before any log is read
+        from dob_hil.commands.paths import ensure_dir
+
+        ensure_dir(plots_dir if plots_dir is not None else default_plots_dir(paths), "--plots")
     logs = [load_log(p, fields=ANALYSIS_FIELDS) for p in paths]
+    for warning in comparison_warnings(logs):
+        print(f"dob-hil analyze: warning: {warning}", file=sys.stderr)
     signals = [derive_signals(log) for log in logs]
     results = [_clean(compute_metrics(log, from_s, sig)) for log, sig in zip(logs, signals, strict=True)]
     for log, metrics in zip(logs, results, strict=True):
@@ -80,8 +128,12 @@ def analyze_logs(
         metrics["plots"] = [str(p) for p in written]
     if as_json:
         print(json.dumps(results, indent=1, allow_nan=False))
-    else:
-        print(format_table(results, [log.label for log in logs]))
+    units = {log.design.output_unit for log in logs if log.design is not None}
+    table = format_table(results, [log.label for log in logs], units.pop() if len(units) == 1 else "")
+    if table_path is not None:  # the comparison table as a file too (dob-hil demo)
+        table_path.write_text(table + "\n", encoding="utf-8")
+    if not as_json:
+        print(table)
         if written:
             print(f"plots: {len(written)} PNG files in {written[0].parent}")
     return results

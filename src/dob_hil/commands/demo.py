@@ -1,7 +1,8 @@
 """``dob-hil demo``: the paper's example end to end on the embedded simulated drive.
 
 Designs the controller (report and plots), runs the scenario in lockstep with and without the
-disturbance observer, and analyses the two logs side by side (metrics table and plots).
+disturbance observer, and analyses the two logs side by side: the metrics table (printed and
+written to ``demo-<name>-comparison.txt``) and the plots (``demo-<name>-plots/``).
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ from dob_hil.scenarios import scenario_path
 
 
 def main(args: argparse.Namespace) -> int:
+    from dob_hil.commands.paths import ensure_dir
     from dob_hil.commands.run import format_summary
     from dob_hil.loop.session import RunOptions, run_session
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_dir(Path(args.out), "--out")
     config = load_config(scenario_path(args.scenario))
     print(f"== design: {config.name}")
     from dob_hil.commands.design import write_design_outputs
@@ -39,5 +40,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"\n== analysis: {logs[0].name} vs {logs[1].name}")
     from dob_hil.commands.analyze import analyze_logs
 
-    analyze_logs(logs, from_s=0.1, plots_dir=out / f"demo-{config.name}-plots", as_json=False)
+    table = out / f"demo-{config.name}-comparison.txt"
+    analyze_logs(
+        logs, from_s=0.1, plots_dir=out / f"demo-{config.name}-plots", as_json=False, table_path=table
+    )
+    print(f"comparison table: {table}")
     return 0

@@ -16,9 +16,10 @@ from dob_hil.errors import ConfigError
 
 
 def main(args: argparse.Namespace) -> int:
-    from dob_hil.analysis.export import default_export_path, write_frames, write_samples_csv
+    from dob_hil.analysis.export import default_export_path, export_frames, write_frames, write_samples_csv
     from dob_hil.log import read_log
     from dob_hil.log.schemas import TOPIC_CAN, TOPIC_CAN_FD, TOPIC_SAMPLE
+    from dob_hil.log.wallclock import wall_offset_ns
 
     if args.samples and args.format != "csv":
         raise ConfigError("--samples", f"samples are exported as csv only, not {args.format}")
@@ -33,6 +34,10 @@ def main(args: argparse.Namespace) -> int:
         n = write_samples_csv(data.samples, out)
         print(f"{out}: {n} samples")
     else:
-        n = write_frames(data.frames, data.fd_frames, out, args.format)
-        print(f"{out}: {n} frames ({args.format})")
+        starts = [int(a["timestamp_ns"].min()) for a in (data.frames, data.fd_frames) if len(a)]
+        offset_ns = wall_offset_ns(data.metadata, min(starts) if starts else None)
+        frames, fd_frames, echoes = export_frames(data.frames, data.fd_frames, wall_offset_ns=offset_ns)
+        n = write_frames(frames, fd_frames, out, args.format)
+        dropped = f", {echoes} received copies of own frames left out" if echoes else ""
+        print(f"{out}: {n} frames ({args.format}){dropped}")
     return 0

@@ -17,11 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dob_hil.analysis.loaded import LoadedLog, load_log
+
+if TYPE_CHECKING:
+    from dob_hil.design import Design
 
 
 def _warn(log: LoadedLog) -> None:
@@ -31,8 +35,10 @@ def _warn(log: LoadedLog) -> None:
 
 def _verify(log: LoadedLog, as_json: bool) -> int:
     from dob_hil.analysis.replay import verify
+    from dob_hil.analysis.verify_fast import verify_streaming
 
-    result = verify(log)
+    # streamed and vectorised (bounded memory); the chained re-run decides anything else
+    result = verify_streaming(log) or verify(load_log(log.path))
     if as_json:
         print(json.dumps({"mode": "verify", "log": str(log.path), **result.to_dict()}, indent=1))
     else:
@@ -56,12 +62,8 @@ def _verify(log: LoadedLog, as_json: bool) -> int:
 def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     from dob_hil.analysis.replay import redesign
     from dob_hil.analysis.replay_plot import plot_redesign
-    from dob_hil.config import load_config
-    from dob_hil.design import build_design
-    from dob_hil.scenarios import resolve_config_path
 
-    config = load_config(resolve_config_path(other))
-    design = build_design(config, dob_enabled=log.dob_enabled)
+    design = load_other_design(other, log.dob_enabled)
     result = redesign(log, design)
     plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")
     assert result.rerun is not None
@@ -96,8 +98,35 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     return 0
 
 
+def load_other_design(other: str, dob_enabled: bool) -> Design:
+    """``--design OTHER``: a design file written by ``dob-hil design`` (JSON), or a config (a TOML
+    path or a shipped scenario name) designed here. Either must be stable with the log's DOB
+    setting."""
+    from dob_hil.config import load_config
+    from dob_hil.design import Design, build_design
+    from dob_hil.scenarios import resolve_config_path
+
+    path = Path(other)
+    if path.is_file() and _looks_like_json(path):
+        design = Design.load(path)
+        design.require_stable(dob_enabled)
+        return design
+    return build_design(load_config(resolve_config_path(other)), dob_enabled=dob_enabled)
+
+
+def _looks_like_json(path: Path) -> bool:
+    if path.suffix.lower() == ".json":
+        return True
+    try:
+        with path.open("rb") as f:
+            head = f.read(64).lstrip()
+    except OSError:
+        return False
+    return head.startswith(b"{")
+
+
 def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
-    from dob_hil.analysis.playback import play_frames
+    from dob_hil.analysis.playback import check_gaps, play_frames
     from dob_hil.link.bus import open_bus
 
     frames, fd = log.data.frames, log.data.fd_frames
@@ -107,15 +136,28 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
     if len(frames) + len(fd) == 0:
         print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
+    check_gaps(frames, fd)  # before the bus is opened: a damaged log sends nothing
+    from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
+
+    rt = RtSettings(
+        sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
+    )
     bus = open_bus(args.interface, args.channel, args.bitrate)
+    cpus_before = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    report = apply_rt_settings(rt)
+    for refused in report.refused:
+        print(f"dob-hil replay: warning: {refused}", file=sys.stderr)
     try:
         print(
             f"dob-hil replay: sending {len(frames) + len(fd)} recorded frames onto "
             f"{bus.channel_info} with their original timing",
             file=sys.stderr,
         )
-        stats = play_frames(bus, frames, fd)
+        stats = play_frames(bus, frames, fd, spin_ns=0 if args.no_spin else 150_000)
     finally:
+        restore_rt_settings(rt)
+        if cpus_before is not None and rt.cpus:
+            os.sched_setaffinity(0, cpus_before)
         bus.shutdown()
     d = stats.to_dict()
     if args.json:
@@ -128,6 +170,12 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
             f"max {lat.get('max', 0):.1f} us; {stats.late_frames} more than "
             f"{stats.late_threshold_us:g} us late"
         )
+        if stats.recorded_gap_us and stats.sent_gap_us:
+            rec, sent = stats.recorded_gap_us, stats.sent_gap_us
+            print(
+                f"  id 0x{stats.gap_id:X} gap: recorded p50 {rec['p50']:.1f} us p99 {rec['p99']:.1f} us; "
+                f"sent p50 {sent['p50']:.1f} us p99 {sent['p99']:.1f} us"
+            )
         if stats.skipped_error_frames or stats.skipped_own_echoes:
             print(
                 f"  skipped: {stats.skipped_error_frames} error frames, "
@@ -137,6 +185,12 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.verify:  # the samples are streamed: read the events, metadata and attachments only
+        from dob_hil.log.schemas import TOPIC_EVENT
+
+        log = load_log(Path(args.log), topics=[TOPIC_EVENT])
+        _warn(log)
+        return _verify(log, args.json)
     log = load_log(Path(args.log))
     _warn(log)
     if args.verify:

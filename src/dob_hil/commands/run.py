@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import sys
-import time
+import os
 from pathlib import Path
 
 from dob_hil.config import Config, load_config
@@ -17,50 +17,52 @@ def load_run_config(args: argparse.Namespace) -> Config:
     if args.scenario and args.config:
         raise ConfigError("--scenario", "give a config file or --scenario, not both")
     if args.scenario:
-        return load_config(scenario_path(args.scenario))
+        return _drive_overrides(load_config(scenario_path(args.scenario)), args)
     if not args.config:
         raise ConfigError("config", "missing: give a config file or --scenario NAME")
-    return load_config(resolve_config_path(args.config))
+    return _drive_overrides(load_config(resolve_config_path(args.config)), args)
 
 
-class ProgressBar:
-    """A one-line progress bar on stderr, drawn at most 10 times a second."""
+def _drive_overrides(config: Config, args: argparse.Namespace) -> Config:
+    """--clear-fault, --feedback-timeout-periods and --watchdog-periods over the [drive] section."""
+    changes: dict[str, object] = {}
+    flags = (
+        ("--feedback-timeout-periods", "feedback_timeout_periods"),
+        ("--watchdog-periods", "watchdog_periods"),
+    )
+    for flag, key in flags:
+        value = getattr(args, key, None)
+        if value is not None:
+            if not 1 <= value <= 100_000:
+                raise ConfigError(flag, f"must be 1..100000 periods, got {value}")
+            changes[key] = value
+    if getattr(args, "clear_fault", False):
+        changes["clear_fault"] = True
+    if not changes:
+        return config
+    return dataclasses.replace(config, drive=dataclasses.replace(config.drive, **changes))  # type: ignore[arg-type]
 
-    def __init__(self, label: str, enabled: bool) -> None:
-        self._label = label
-        self._enabled = enabled
-        self._last = 0.0
-        self._t0 = time.perf_counter()
 
-    def __call__(self, done: int, total: int) -> None:
-        if not self._enabled:
-            return
-        now = time.perf_counter()
-        if now - self._last < 0.1 and done < total:
-            return
-        self._last = now
-        frac = done / total if total else 1.0
-        bar = "#" * int(30 * frac)
-        rate = done / (now - self._t0) if now > self._t0 else 0.0
-        print(
-            f"\r{self._label} [{bar:<30}] {100 * frac:5.1f}% {rate:,.0f} samples/s", end="", file=sys.stderr
-        )
-
-    def close(self) -> None:
-        if self._enabled and self._last:
-            print(file=sys.stderr)
+def _plural(n: object, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
 
 
 def format_summary(s: dict[str, object]) -> str:
+    """The run summary as text. Counts: ``missing`` samples had no fresh feedback (the policy
+    stood in); ``of them in sequence gaps``: feedback frames never seen (lost or overrun)."""
+    realtime = s["mode"] != "lockstep"
+    span = "run time" if realtime else "simulated"
     lines = [
         f"run {s['name']}: {s['exit_reason']}  ({s['mode']}, DOB {'on' if s['dob_enabled'] else 'off'})",
-        f"  samples          {s['samples']} of {s['planned_samples']} ({s['duration_s']:.3f} s simulated, "
+        f"  samples          {s['samples']} of {s['planned_samples']} ({s['duration_s']:.3f} s {span}, "
         f"{s['wall_time_s']:.2f} s wall, {s['samples_per_s']:,.0f} samples/s)",
         f"  current          max |u| {s['max_abs_current_A']:.4f} A (limit {s['current_limit_A']} A), "
-        f"saturated {s['saturated_samples']} samples",
-        f"  feedback         missing {s['missing_samples']}, skipped {s['skipped_samples']}, "
-        f"overruns {s['overruns']}",
-        f"  controller step  max {int(s['compute_ns_max']) / 1000:.1f} us",  # type: ignore[call-overload]
+        f"saturated {_plural(s['saturated_samples'], 'sample')}",
+        f"  feedback         missing {_plural(s['missing_samples'], 'sample')} "
+        f"({s['skipped_samples']} of them in sequence gaps), "
+        f"{_plural(s['overruns'], 'overrun')}",
+        f"  controller step  max {int(s['compute_ns_max']) / 1000:.1f} us "  # type: ignore[call-overload]
+        "(estimate, quantize, predict and two clock reads; the pure step alone: benchmarks/)",
         f"  log              {s['log_path']} (dropped records: {s['log_dropped_records']})",
     ]
     if s["events"]:
@@ -70,11 +72,32 @@ def format_summary(s: dict[str, object]) -> str:
     return "\n".join(lines)
 
 
+def check_run_arguments(args: argparse.Namespace, config: Config) -> None:
+    """The command line's own values, checked like the config's before anything is opened."""
+    from dob_hil.commands.paths import ensure_dir, ensure_file_parent
+    from dob_hil.config import check_cpus, check_value
+
+    if args.duration is not None:
+        check_value("run", "duration_s", args.duration, "--duration")
+    if args.cpu:
+        check_cpus(args.cpu, "--cpu")
+    elif config.run.cpu_affinity:  # the config's CPUs, on the machine that runs it
+        check_cpus(config.run.cpu_affinity, "run.cpu_affinity")
+    if args.log:
+        ensure_file_parent(Path(args.log), "--log")
+    else:
+        ensure_dir(config.run.log_dir, "run.log_dir")
+
+
 def main(args: argparse.Namespace) -> int:
+    from dob_hil.commands.progress import ProgressBar
     from dob_hil.loop.rt_os import RtSettings
     from dob_hil.loop.session import RunOptions, run_session
 
     config = load_run_config(args)
+    check_run_arguments(args, config)
+    if args.no_log and args.log:
+        raise ConfigError("--no-log", "give --log PATH or --no-log, not both")
     bar = ProgressBar(
         f"{config.name}{' (no DOB)' if args.no_dob else ''}", not args.no_progress and not args.json
     )
@@ -84,17 +107,19 @@ def main(args: argparse.Namespace) -> int:
         bitrate=args.bitrate,
         dob_enabled=False if args.no_dob else None,
         duration_s=args.duration,
-        log_path=Path(args.log) if args.log else None,
+        log_path=Path(os.devnull) if args.no_log else (Path(args.log) if args.log else None),
         realtime=args.realtime,
         rt=RtSettings(
             sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
         ),
-        progress=bar if (args.duration or config.run.duration_s) >= 5.0 else None,
+        progress=bar if bar.enabled else None,
     )
     try:
         summary = run_session(config, options)
-    finally:
-        bar.close()
+    except BaseException:
+        bar.finish()
+        raise
+    bar.finish(summary.samples, summary.planned_samples)
     d = summary.to_dict()
     if args.json:
         print(json.dumps(d, indent=2))

@@ -4,7 +4,9 @@ Per sample k, with ``y`` the measured output and ``x_ref`` the reference state::
 
     e      = y - C x_bar                    innovation
     x_hat  = x_bar + Lc e                   current estimate           (paper eq. 5)
-    u_fb   = Kc (x_ref - x_hat)             state feedback             (eq. 9)
+    u_fb   = Kc (x_ref - x_hat) + Kff x_ref state feedback (eq. 9) and the reference feedforward
+                                            u_ref = Nu r written as Kff x_ref (dob_hil.design.tracking;
+                                            Kff = 0, no code at all, for the paper's plant)
     u_dist = Kdist (x_bar - x_hat)          disturbance observer       (eq. 4; = -Kdist Lc e)
     u_cmd  = u_fb + u_dist                  -> the link limits and quantizes it -> u_applied
     x_bar' = Phi x_hat + Gam (u_applied - u_dist)     prediction driven by the input actually
@@ -61,7 +63,8 @@ class StepFunctions:
 
 @dataclass(frozen=True)
 class Gains:
-    """The matrices the step needs (the augmented discrete model and the three gains)."""
+    """The matrices the step needs (the augmented discrete model, the three gains and the optional
+    reference feedforward ``Kff``, m x N; None means zero)."""
 
     Phi: Matrix
     Gam: Matrix
@@ -69,6 +72,7 @@ class Gains:
     Lc: Matrix
     Kc: Matrix
     Kdist: Matrix
+    Kff: Matrix | None = None
 
     def check(self) -> None:
         n = self.Phi.shape[0]
@@ -81,9 +85,12 @@ class Gains:
             "Lc": (n, p),
             "Kc": (m, n),
             "Kdist": (m, n),
+            "Kff": (m, n),
         }
         for name, shape in want.items():
             value = getattr(self, name)
+            if value is None:
+                continue
             if value.shape != shape:
                 raise DesignError(f"{name}: expected shape {shape[0]}x{shape[1]}, got {value.shape}")
             if not np.all(np.isfinite(value)):
@@ -138,8 +145,11 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
         up.append(f"    xh{i} = xb{i} + ({dot('Lc', gains.Lc, i, es)})")
     for i in range(n):
         up.append(f"    d{i} = r{i} - xh{i}")
+    Kff = gains.Kff if gains.Kff is not None else np.zeros_like(gains.Kc)
     for i in range(m):
-        up.append(f"    fb{i} = {dot('Kc', gains.Kc, i, [f'd{j}' for j in range(n)])}")
+        fb = dot("Kc", gains.Kc, i, [f"d{j}" for j in range(n)])
+        ff = dot("Kff", Kff, i, rs)
+        up.append(f"    fb{i} = {fb}" + (f" + ({ff})" if ff != "0.0" else ""))
     for i in range(n):
         up.append(f"    o{i} = xb{i} - xh{i}")
     for i in range(m):
@@ -189,6 +199,8 @@ def numpy_step(
     """Straightforward numpy version of ``update`` (column vectors): x_hat, u_fb, u_dist, u_cmd."""
     x_hat = x_bar + gains.Lc @ (y - gains.C @ x_bar)
     u_fb = gains.Kc @ (x_ref - x_hat)
+    if gains.Kff is not None:
+        u_fb = u_fb + gains.Kff @ x_ref
     u_dist = gains.Kdist @ (x_bar - x_hat) if dob_enabled else np.zeros((gains.Gam.shape[1], 1))
     return x_hat, u_fb, u_dist, u_fb + u_dist
 

@@ -4,7 +4,9 @@ table. :meth:`DesignAnalysis.to_dict` is the JSON report (numbers only, no frequ
 
 Margins are loop-at-a-time: for each channel of the loop broken at the plant *input* (Li = K P) and at
 the plant *output* (Lo = P K), the scalar loop of that channel with every other loop closed
-(for a SISO plant both are the same scalar loop K(z) P(z), negative feedback).
+(for a SISO plant both are the same scalar loop K(z) P(z), negative feedback). Disk margins are the
+balanced (skew 0) ones of MATLAB's ``diskmargin``, loop at a time; the delay margin, noise to current,
+the disturbance-to-estimate filter Q(z) and the pole flags are defined in ``robustness`` and ``dob``.
 """
 
 from __future__ import annotations
@@ -18,11 +20,19 @@ import numpy.typing as npt
 
 from dob_hil.config import Config
 from dob_hil.design.build import DesignResult
-from dob_hil.design.dob import locus_magnitudes
-from dob_hil.design.linalg import Matrix, frequency_grid_hz, max_singular_value
+from dob_hil.design.dob import METHOD_AIMS, disturbance_estimate_response, locus_magnitudes
+from dob_hil.design.linalg import CMatrix, Matrix, frequency_grid_hz, max_singular_value, unit_circle_points
 from dob_hil.design.loops import LoopResponse, design_loop_response, loop_at_a_time
 from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, ltr_report
 from dob_hil.design.margins import Margins, loop_margins
+from dob_hil.design.robustness import (
+    DiskMargin,
+    PoleFlag,
+    classical_margins,
+    disk_margin,
+    noise_rms,
+    pole_flags,
+)
 from dob_hil.design.theorem1 import EXPRESSIONS, dob_matrix, estimator_matrix, feedback_matrix
 
 FloatArray = npt.NDArray[np.float64]
@@ -54,6 +64,12 @@ class LoopSummary:
     peak_disturbance: Peak
     low_frequency_disturbance_gain: float
     disturbance_at: tuple[tuple[float, float], ...]  # (frequency Hz, |y/w| for the configured input)
+    noise_rms_A: tuple[float, ...]  # per input, one count RMS of white encoder noise
+    noise_peak_A: Peak  # max over frequency of sigma_max(K S) * one count
+    noise_to_current: FloatArray  # sigma_max(K S) * one count on the grid [A per count]
+    disk_input: tuple[DiskMargin, ...]
+    disk_output: tuple[DiskMargin, ...]
+    delay_margin_s: float
 
 
 @dataclass(frozen=True)
@@ -66,6 +82,9 @@ class DesignAnalysis:
     locus_gain: FloatArray
     locus_magnitudes: Matrix
     dob_enabled: bool
+    Q: CMatrix  # disturbance-to-estimate filter Q(z) on the grid (m x m)
+    pole_flags: tuple[PoleFlag, ...]
+    count: float  # one encoder count in output units
 
     def to_dict(self) -> dict[str, Any]:
         return report_dict(self)
@@ -87,6 +106,10 @@ def _peak(values: FloatArray, w: FloatArray, fn: Any) -> Peak:
     return Peak(best, at / (2.0 * math.pi))
 
 
+def _noise_rms(design: Any, Kdist: Matrix, count: float) -> FloatArray:
+    return noise_rms(design.Phi, design.Gam, design.C, Lc=design.Lc, Kc=design.Kc, Kdist=Kdist, count=count)
+
+
 def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: bool) -> LoopSummary:
     design = result.design
 
@@ -104,6 +127,11 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
     def sig(attr: str) -> Any:
         return lambda x: max_singular_value(getattr(resp(x), attr))
 
+    count = 1.0 / config.drive.encoder_counts_per_unit
+    ks = max_singular_value(r.K @ r.S) * count
+    m_, p_ = design.n_inputs, design.n_outputs
+    dms = [classical_margins(1.0 / r.Si[:, i, i] - 1.0, w)[2] for i in range(m_)]
+    Kd = design.Kdist if dob_enabled else np.zeros_like(design.Kdist)
     dist_at: list[tuple[float, float]] = []
     for dcfg in config.sim.disturbances:
         if dcfg.kind == "sine" and dcfg.frequency_hz > 0.0:
@@ -120,6 +148,17 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
         peak_disturbance=_peak(max_singular_value(r.disturbance), w, sig("disturbance")),
         low_frequency_disturbance_gain=float(max_singular_value(r.disturbance)[0]),
         disturbance_at=tuple(dist_at),
+        noise_rms_A=tuple(
+            float(v)
+            for v in noise_rms(
+                design.Phi, design.Gam, design.C, Lc=design.Lc, Kc=design.Kc, Kdist=Kd, count=count
+            )
+        ),
+        noise_peak_A=Peak(float(np.max(ks)), float(w[int(np.argmax(ks))]) / (2.0 * math.pi)),
+        noise_to_current=np.asarray(ks, dtype=np.float64),
+        disk_input=tuple(disk_margin(r.Si[:, i, i], w) for i in range(m_)),
+        disk_output=tuple(disk_margin(r.S[:, i, i], w) for i in range(p_)),
+        delay_margin_s=min(dms),
     )
 
 
@@ -135,6 +174,22 @@ def analyze(result: DesignResult, config: Config, points: int = 1500) -> DesignA
         estimator_matrix(design.Phi, design.C, design.Lc), design.Gam, design.C, dob.direction, gains
     )
     q_values = config.design.feedback.ltr_q_values or DEFAULT_LTR_Q_VALUES
+    Q = disturbance_estimate_response(
+        design.Phi,
+        design.Gam,
+        design.Gam_w,
+        design.C,
+        design.Lc,
+        design.Kdist,
+        unit_circle_points(w, design.period_s),
+    )
+    flags = pole_flags(
+        {
+            EXPRESSIONS["feedback"]: feedback_matrix(design.Phi, design.Gam, design.Kc),
+            EXPRESSIONS["dob"]: dob_matrix(design.Phi, design.Gam, design.C, design.Lc, design.Kdist),
+            EXPRESSIONS["estimator"]: estimator_matrix(design.Phi, design.C, design.Lc),
+        }
+    )
     ltr = ltr_report(
         design.Phi,
         design.Gam,
@@ -145,6 +200,7 @@ def analyze(result: DesignResult, config: Config, points: int = 1500) -> DesignA
         q_values=q_values,
         period_s=design.period_s,
         omega_rad_s=w,
+        band_hz=config.design.feedback.ltr_band_hz,
     )
     return DesignAnalysis(
         result=result,
@@ -155,6 +211,9 @@ def analyze(result: DesignResult, config: Config, points: int = 1500) -> DesignA
         locus_gain=gains,
         locus_magnitudes=mags,
         dob_enabled=result.dob_enabled,
+        Q=Q,
+        pole_flags=tuple(flags),
+        count=1.0 / config.drive.encoder_counts_per_unit,
     )
 
 
@@ -164,18 +223,29 @@ def _complex_list(M: Matrix) -> list[list[float]]:
     return [[float(e.real), float(e.imag)] for e in ev]
 
 
-def _loop_dict(s: LoopSummary) -> dict[str, Any]:
+def _finite_rows(M: Matrix) -> list[list[float | None]]:
+    """A matrix as JSON rows, a non-finite entry (Q(1) of a DOB matrix with a pole at 1) as null."""
+    return [[float(v) if math.isfinite(v) else None for v in row] for row in np.asarray(M).tolist()]
+
+
+def _finite(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def _loop_dict(s: LoopSummary, period_s: float) -> dict[str, Any]:
     return {
         "margins_plant_input": [m.as_dict() for m in s.margins_input],
         "margins_plant_output": [m.as_dict() for m in s.margins_output],
         "peak_sensitivity": s.peak_S.as_dict(),
         "peak_complementary_sensitivity": s.peak_T.as_dict(),
         "peak_input_sensitivity": s.peak_Si.as_dict(),
-        "disk_margin_bounds_from_peak_S": {
-            "gain_margin_dB": 20.0 * math.log10(s.peak_S.value / (s.peak_S.value - 1.0))
-            if s.peak_S.value > 1.0
-            else None,
-            "phase_margin_deg": math.degrees(2.0 * math.asin(min(1.0, 1.0 / (2.0 * s.peak_S.value)))),
+        "disk_margins_plant_input": [d.as_dict() for d in s.disk_input],
+        "disk_margins_plant_output": [d.as_dict() for d in s.disk_output],
+        "delay_margin": {"s": _finite(s.delay_margin_s), "samples": _finite(s.delay_margin_s / period_s)},
+        "noise_to_current": {
+            "rms_A_per_count_rms": list(s.noise_rms_A),
+            "peak_A_per_count": s.noise_peak_A.value,
+            "peak_at_Hz": s.noise_peak_A.frequency_hz,
         },
         "disturbance_to_output": {
             "peak": s.peak_disturbance.as_dict(),
@@ -231,6 +301,7 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
         "riccati": {"estimator": dare(res.estimator_dare), "feedback": dare(res.feedback_dare)},
         "dob": {
             "method": dob.method,
+            "method_aim": METHOD_AIMS.get(dob.method, ""),
             "direction": dob.direction.tolist(),
             "direction_kind": dob.direction_kind,
             "gain": dob.gain,
@@ -239,13 +310,66 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
             "min_radius": dob.min_radius,
             "H1": dob.H1.tolist(),
             "dc_loop_gain": dob.dc_loop_gain.tolist(),
-            "dc_disturbance_estimate_gain": dob.dc_estimate_gain.tolist(),
+            "dc_disturbance_estimate_gain": _finite_rows(dob.dc_estimate_gain),
         },
-        "loop_dob_on": _loop_dict(a.dob_on),
-        "loop_dob_off": _loop_dict(a.dob_off),
+        "loop_dob_on": _loop_dict(a.dob_on, d.period_s),
+        "loop_dob_off": _loop_dict(a.dob_off, d.period_s),
+        "disturbance_estimate_filter": {
+            "definition": "Q(z): input disturbance w -> DOB estimate -u_dist (not T)",
+            "Q1": _finite_rows(dob.dc_estimate_gain),
+            "peak": float(np.max(max_singular_value(a.Q))),
+            "bandwidth_Hz": _bandwidth(a),
+        },
+        "pole_flags": [p.as_dict() for p in a.pole_flags],
+        "warnings": list(res.warnings),
+        "optimize": _optimize_dict(res),
         "ltr": {
             "target": "Gtl = C (zI - Phi)^-1 Phi Lc (eq. 8), loop broken at the plant output, DOB off",
             "R2": a.ltr.R2.tolist(),
+            "band_Hz": list(a.ltr.band_hz),
+            "recovered_at_q": a.ltr.recovered_at_q,
+            "obstructions": list(a.ltr.obstructions),
+            "notes": list(a.ltr.notes),
             "rows": [r.as_dict() for r in a.ltr.rows],
         },
+    }
+
+
+def _bandwidth(a: DesignAnalysis) -> float | None:
+    """Lowest frequency where sigma_max(Q) drops below Q(1)'s sigma_max / sqrt(2)."""
+    q = max_singular_value(a.Q)
+    below = np.nonzero(q < q[0] / math.sqrt(2.0))[0]
+    return float(a.frequency_hz[below[0]]) if below.size else None
+
+
+def _optimize_dict(res: DesignResult) -> dict[str, Any] | None:
+    o = res.optimized
+    if o is None:
+        return None
+
+    def merit(m: Any) -> dict[str, Any]:
+        return {
+            "rejection_in_band": m.rejection.tolist(),
+            "worst_rejection": m.worst_rejection,
+            "peak_S": m.peak_S,
+            "peak_T": m.peak_T,
+            "noise_rms_A": m.noise_rms_A.tolist(),
+            "noise_peak_A": m.noise_peak_A,
+            "gain_margin_dB": _finite(m.gain_margin_db),
+            "phase_margin_deg": _finite(m.phase_margin_deg),
+            "disk_gain_margin_dB": _finite(m.disk_gain_margin_db),
+            "disk_phase_margin_deg": m.disk_phase_margin_deg,
+            "delay_margin_s": _finite(m.delay_margin_s),
+        }
+
+    return {
+        "tune": o.tune,
+        "band_Hz": list(o.band_hz),
+        "band_frequencies_Hz": o.merit.band_hz.tolist(),
+        "bounds": o.bounds.as_dict(),
+        "solver": o.solver,
+        "improved": o.improved,
+        "rejection_gain": o.rejection_gain,
+        "start": merit(o.start),
+        "result": merit(o.merit),
     }

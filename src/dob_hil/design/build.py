@@ -7,14 +7,22 @@
 3. Feedback gain Kc: ``design.feedback.Kc`` if given, else the DARE of eq. 10-11 with R1 = q C'C
    (``q`` default 1) and ``R2`` (default I_m).
 4. DOB gain Kdist: ``design.dob.Kdist`` if given, else ``design.dob.method``/``gain`` (``dob``).
-5. Theorem 1: the estimator and feedback matrices must be stable, and with the DOB enabled
-   (``dob_enabled``, default ``run.dob_enabled``) the dob matrix too; otherwise DesignError names the
-   matrix and its spectral radius. With the DOB disabled the dob matrix is still reported.
+   With ``design.dob.method = "optimize"`` (or ``optimize=True``) Kdist -- and with
+   ``design.optimize.tune = "all"`` Lc and Kc too -- come from :mod:`dob_hil.design.optimize`.
+5. Theorem 1: the closed-loop eigenvalues are those of the feedback matrix and of the DOB matrix
+   (DOB on, ``dob_enabled``, default ``run.dob_enabled``) or the estimator matrix (DOB off); each must
+   be stable, otherwise DesignError names the matrix and its spectral radius.
+6. Robustness: :func:`dob_hil.design.robustness.design_warnings` lists every violated robustness bound
+   (peak |S|, margins, delay margin) and a weak DOB; they are in ``DesignResult.warnings`` and issued
+   as :class:`dob_hil.design.robustness.DesignWarning` (``warnings.warn``) so ``run`` shows them too.
 """
 
 from __future__ import annotations
 
+import contextlib
+import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,10 +35,14 @@ from dob_hil.design.discretize import (
     zoh,
 )
 from dob_hil.design.dob import DobDesign, design_dob
-from dob_hil.design.linalg import Matrix, spectral_radius
+from dob_hil.design.linalg import Matrix
 from dob_hil.design.riccati import DareSolution, solve_estimator_dare, solve_feedback_dare
-from dob_hil.design.theorem1 import EXPRESSIONS, estimator_matrix, spectral_radii, unstable_parts
+from dob_hil.design.robustness import DesignWarning, design_warnings
+from dob_hil.design.theorem1 import EXPRESSIONS, spectral_radii, unstable_parts
 from dob_hil.errors import DesignError
+
+if TYPE_CHECKING:
+    from dob_hil.design.optimize import OptimizeResult
 
 DEFAULT_Q = 1.0
 
@@ -48,14 +60,16 @@ class DesignResult:
     q: float | None
     R2: Matrix
     dob_enabled: bool
+    warnings: tuple[str, ...] = ()
+    optimized: OptimizeResult | None = None
 
 
-def _fmt(M: Matrix) -> str:
-    return np.array2string(M, precision=5, separator=", ", max_line_width=200).replace("\n", "")
-
-
-def design_with_diagnostics(config: Config, *, dob_enabled: bool | None = None) -> DesignResult:
-    """Everything :func:`build_design` does, returning the diagnostics too."""
+def design_with_diagnostics(
+    config: Config, *, dob_enabled: bool | None = None, optimize: bool = False, locus: bool = True
+) -> DesignResult:
+    """Everything :func:`build_design` does, returning the diagnostics too. ``optimize`` runs the
+    ``optimize`` method whatever ``design.dob`` says (``dob-hil design --optimize``); ``locus=False``
+    skips the DOB gain locus of an explicit Kdist (``build_design``: not needed to run)."""
     dob_on = config.run.dob_enabled if dob_enabled is None else dob_enabled
     plant, dc = config.plant, config.design
     n, m, p, d = plant.n_states, plant.n_inputs, plant.n_outputs, plant.input_delay_samples
@@ -79,12 +93,6 @@ def design_with_diagnostics(config: Config, *, dob_enabled: bool | None = None) 
             f"DARE eq. 6-7, Gam1 = {'given' if dc.estimator.Gam1 is not None else 'Gam_w (default)'}, "
             f"D1 = {'given' if dc.estimator.D1 is not None else 'I (default)'}"
         )
-    rho_est = spectral_radius(estimator_matrix(Phi, C, Lc))
-    if not rho_est < 1.0:
-        raise DesignError(
-            f"estimator: rho({EXPRESSIONS['estimator']}) = {rho_est:.4g} >= 1 (Lc = {_fmt(Lc)})"
-        )
-
     fb_sol: DareSolution | None = None
     q: float | None = None
     R2 = dc.feedback.R2 if dc.feedback.R2 is not None else np.eye(m)
@@ -100,9 +108,26 @@ def design_with_diagnostics(config: Config, *, dob_enabled: bool | None = None) 
             f"R2 = {'given' if dc.feedback.R2 is not None else 'I (default)'}"
         )
 
-    dob = design_dob(Phi, Gam, Gam_w, C, Lc, Kdist=dc.dob.Kdist, method=dc.dob.method, gain=dc.dob.gain)
+    optimized: OptimizeResult | None = None
+    if optimize or dc.dob.method == "optimize":
+        from dob_hil.design.optimize import optimize_design
+
+        optimized = optimize_design(config, Phi, Gam, Gam_w, C, Lc=Lc, Kc=Kc)
+        Lc, Kc = optimized.Lc, optimized.Kc
+        dob = design_dob(
+            Phi, Gam, Gam_w, C, Lc, Kdist=optimized.Kdist, method=None, gain=None, explicit_label="optimize"
+        )
+        sources["Kdist"] = f"optimize: {optimized.summary}"
+        if optimized.tune == "all":
+            sources["Lc"] = sources["Kc"] = "optimize (tune = all), started from " + sources["Lc"]
+    else:
+        dob = design_dob(
+            Phi, Gam, Gam_w, C, Lc, Kdist=dc.dob.Kdist, method=dc.dob.method, gain=dc.dob.gain, locus=locus
+        )
     if dob.method == "explicit":
         sources["Kdist"] = "explicit (design.dob.Kdist)"
+    elif dob.method == "optimize":
+        pass
     else:
         sources["Kdist"] = (
             f"method {dob.method}: Kdist Lc = {dob.gain:.6g} pinv(H(1)), Kdist = Kdist Lc pinv(Lc)"
@@ -112,11 +137,17 @@ def design_with_diagnostics(config: Config, *, dob_enabled: bool | None = None) 
     problems = unstable_parts(radii, dob_on)
     if problems:
         hint = ""
+        if any(s.startswith("dob:") for s in problems) and dob.k_max is None and not locus:
+            with contextlib.suppress(DesignError):  # the stable range for the message (error path only)
+                dob = design_dob(Phi, Gam, Gam_w, C, Lc, Kdist=dob.Kdist, method=None, gain=None)
         if any(s.startswith("dob:") for s in problems) and dob.k_max is not None:
             hint = (
                 f" (stable DOB gains along {dob.direction_kind}: 0 <= k < {dob.k_max:.4g}; "
                 f"this design has k = {dob.gain:.4g})"
             )
+        rho_est = max(radii["estimator"])
+        if dob_on and rho_est >= 1.0:
+            hint += f" (the estimator alone is unstable too: rho({EXPRESSIONS['estimator']}) = {rho_est:.4g})"
         raise DesignError("; ".join(problems) + hint)
 
     design = Design(
@@ -142,7 +173,10 @@ def design_with_diagnostics(config: Config, *, dob_enabled: bool | None = None) 
         spectral_radii=radii,
         gain_sources=sources,
     )
-    return DesignResult(design, est_sol, fb_sol, dob, Gam1, D1, q, R2, dob_on)
+    notes = dob.warnings + design_warnings(design, dob_on, config.drive.encoder_counts_per_unit)
+    for note in notes:
+        warnings.warn(note, DesignWarning, stacklevel=2)
+    return DesignResult(design, est_sol, fb_sol, dob, Gam1, D1, q, R2, dob_on, notes, optimized)
 
 
 def build_design(config: Config, *, dob_enabled: bool | None = None) -> Design:
@@ -150,4 +184,4 @@ def build_design(config: Config, *, dob_enabled: bool | None = None) -> Design:
     ``config.run.dob_enabled`` (e.g. ``--no-dob``): only with the DOB on must the dob matrix be stable.
     Raises DesignError for an unstable design (naming the matrix and its spectral radius) or a DARE
     without a solution, and ConfigError for invalid design settings."""
-    return design_with_diagnostics(config, dob_enabled=dob_enabled).design
+    return design_with_diagnostics(config, dob_enabled=dob_enabled, locus=False).design

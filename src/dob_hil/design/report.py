@@ -41,7 +41,6 @@ def _margins(label: str, items: list[dict[str, Any]]) -> list[str]:
 def _loop(title: str, loop: dict[str, Any]) -> list[str]:
     ps, pt = loop["peak_sensitivity"], loop["peak_complementary_sensitivity"]
     dist = loop["disturbance_to_output"]
-    disk = loop["disk_margin_bounds_from_peak_S"]
     lines = [f"  {title}:"]
     lines += _margins("plant input ", loop["margins_plant_input"])
     lines += _margins("plant output", loop["margins_plant_output"])
@@ -49,9 +48,29 @@ def _loop(title: str, loop: dict[str, Any]) -> list[str]:
         f"    peak |S| {ps['value']:.3f} ({ps['dB']:.2f} dB) at {ps['at_Hz']:.1f} Hz; "
         f"peak |T| {pt['value']:.3f} ({pt['dB']:.2f} dB) at {pt['at_Hz']:.1f} Hz"
     )
+    for where, key in (
+        ("plant input ", "disk_margins_plant_input"),
+        ("plant output", "disk_margins_plant_output"),
+    ):
+        for i, dm in enumerate(loop[key]):
+            lines.append(
+                f"    disk margin (balanced) {where}[{i}]: +/-{dm['gain_margin_dB']:.2f} dB, "
+                f"+/-{dm['phase_margin_deg']:.1f} deg (alpha {dm['alpha']:.3f}, at {dm['at_Hz']:.1f} Hz)"
+            )
+    dm = loop["delay_margin"]
     lines.append(
-        f"    from peak |S|: GM >= {_num(disk['gain_margin_dB'], '.2f', ' dB')}, "
-        f"PM >= {disk['phase_margin_deg']:.1f} deg"
+        "    delay margin: "
+        + (
+            "none (no gain crossover)"
+            if dm["s"] is None
+            else f"{dm['s'] * 1e6:.0f} us = {dm['samples']:.2f} samples"
+        )
+    )
+    nz = loop["noise_to_current"]
+    lines.append(
+        "    noise to current (one encoder count): RMS "
+        + ", ".join(f"{v:.4g}" for v in nz["rms_A_per_count_rms"])
+        + f" A (white, 1 count RMS), peak {nz['peak_A_per_count']:.4g} A at {nz['peak_at_Hz']:.0f} Hz"
     )
     pk = dist["peak"]
     lines.append(
@@ -97,7 +116,8 @@ def format_report(r: dict[str, Any]) -> str:
     lines += [
         "",
         "disturbance observer:",
-        f"  method {dob['method']}; Kdist Lc = k * D with D = {dob['direction_kind']} = "
+        f"  method {dob['method']}: {dob['method_aim']}",
+        f"  Kdist Lc = k * D with D = {dob['direction_kind']} = "
         f"{_inline(dob['direction'])}, k = {dob['gain']:.5g}",
         f"  stable for 0 <= k < {_num(dob['stable_gain_limit'], '.5g')}; "
         f"fastest at k = {dob['min_radius_gain']:.5g} "
@@ -105,22 +125,108 @@ def format_report(r: dict[str, Any]) -> str:
         f"  H(1) = C (I - Phi + Phi Lc C)^-1 Gam = {_inline(dob['H1'])}",
         f"  DOB loop DC gain Kdist Lc H(1) = {_inline(dob['dc_loop_gain'])}",
         f"  DC disturbance estimate (-u_dist per unit w) = {_inline(dob['dc_disturbance_estimate_gain'], 4)}",
+        "  disturbance-to-estimate filter Q(z) = Kdist Lc C (zI - Phi + Phi Lc C + Gam Kdist Lc C)^-1 Gam_w:",
+        f"    Q(1) = {_inline(r['disturbance_estimate_filter']['Q1'], 4)}, peak "
+        f"{r['disturbance_estimate_filter']['peak']:.4g}, -3 dB at "
+        f"{_num(r['disturbance_estimate_filter']['bandwidth_Hz'], '.1f', ' Hz')} (Q is not T)",
         "",
-        "loop analysis (S, T at the plant output):",
+        "poles (closed loop = feedback and DOB matrices, Theorem 1):",
     ]
+    if not r["pole_flags"]:
+        lines.append("  no negative real (|z| >= 0.3) or lightly damped (zeta < 0.1) pole")
+    for pf in r["pole_flags"]:
+        re, im = pf["eigenvalue"]
+        lines.append(
+            f"  {pf['kind']}: z = {re:.4f}{im:+.4f}j (|z| {pf['magnitude']:.4f}, "
+            f"zeta {pf['damping_ratio']:.3f}) of {pf['matrix']}"
+            + (" -- alternates sign each sample: command chatter" if pf["kind"] == "negative real" else "")
+        )
+    lines += ["", "loop analysis (S, T at the plant output):"]
     lines += _loop("DOB on", r["loop_dob_on"])
     lines += _loop("DOB off", r["loop_dob_off"])
-    lines += ["", f"loop transfer recovery: {r['ltr']['target']}"]
+    ltr = r["ltr"]
+    lo, hi = ltr["band_Hz"]
+    lines += ["", f"loop transfer recovery: {ltr['target']}"]
     lines.append(
-        f"  {'Kc from':>12s}  {'rho(Phi-Gam Kc)':>15s}  {'max rel err':>11s}  {'max wtd err':>11s}  "
-        f"{'err at cross':>12s}  recovered to"
+        f"  error = sigma_max(Lo_q - Gtl) / sigma_max(Gtl); band {lo:.3g}-{hi:.3g} Hz "
+        "(design.feedback.ltr_band_hz); recovered = band error <= 10 %"
     )
-    for row in r["ltr"]["rows"]:
+    lines.append(
+        f"  {'Kc from':>12s}  {'rho(Phi-Gam Kc)':>15s}  {'band err':>9s}  {'max rel err':>11s}  "
+        f"{'max wtd err':>11s}  {'err at cross':>12s}  10 % up to"
+    )
+    for row in ltr["rows"]:
         rec = "-" if row["recovered_to_Hz"] is None else f"{row['recovered_to_Hz']:.1f} Hz"
+        mark = " recovered" if row["recovered_in_band"] else ""
         lines.append(
-            f"  {row['label']:>12s}  {row['feedback_radius']:15.4f}  {row['max_relative_error']:11.3g}  "
-            f"{row['max_weighted_error']:11.3g}  {_num(row['relative_error_at_crossover'], '12.3g')}  {rec}"
+            f"  {row['label']:>12s}  {row['feedback_radius']:15.4f}  {row['band_relative_error']:9.3g}  "
+            f"{row['max_relative_error']:11.3g}  {row['max_weighted_error']:11.3g}  "
+            f"{_num(row['relative_error_at_crossover'], '12.3g')}  {rec}{mark}"
         )
+    if ltr["recovered_at_q"] is not None:
+        lines.append(f"  recovered in the band from q = {ltr['recovered_at_q']:g}")
+    for note in ltr["obstructions"]:
+        lines.append(f"  cannot recover: {note}")
+    for note in ltr["notes"]:
+        lines.append(f"  note: {note}")
+    opt = r.get("optimize")
+    if opt is not None:
+        lines += [
+            "",
+            f"optimize (tune {opt['tune']}, band {opt['band_Hz'][0]:g}-{opt['band_Hz'][1]:g} Hz, "
+            f"{opt['solver']}):",
+        ]
+        lines.append(f"  {'':24s} {'start':>10s} {'result':>10s}   bound")
+        b = opt["bounds"]
+        rows_ = [
+            ("worst |y/w| in band", "worst_rejection", None),
+            ("peak |S|", "peak_S", b["max_peak_S"]),
+            ("peak |T|", "peak_T", b["max_peak_T"]),
+            ("noise RMS [A/count]", "noise_rms_A", b["max_noise_rms_A"]),
+            ("noise peak [A/count]", "noise_peak_A", b["max_noise_peak_A"]),
+            ("gain margin [dB]", "gain_margin_dB", b["min_gain_margin_dB"]),
+            ("phase margin [deg]", "phase_margin_deg", b["min_phase_margin_deg"]),
+            ("disk gain margin [dB]", "disk_gain_margin_dB", b["min_disk_gain_margin_dB"]),
+            ("disk phase margin [deg]", "disk_phase_margin_deg", b["min_disk_phase_margin_deg"]),
+            ("delay margin [us]", "delay_margin_s", b["min_delay_margin_samples"]),
+        ]
+        for label, key, bound in rows_:
+            a0, a1 = opt["start"][key], opt["result"][key]
+            if key == "noise_rms_A":
+                a0, a1 = max(a0), max(a1)
+            scale = 1e6 if key == "delay_margin_s" else 1.0
+            bound_s = (
+                "-"
+                if bound is None
+                else (f"{bound:g} samples" if key == "delay_margin_s" else f"{bound:.4g}")
+            )
+            lines.append(f"  {label:24s} {_num(None if a0 is None else a0 * scale, '10.4g')} "
+                         f"{_num(None if a1 is None else a1 * scale, '10.4g')}   {bound_s}")  # fmt: skip
+        lines.append(f"  rejection {opt['rejection_gain']:.2f}x the start's over the band")
+    if r.get("warnings"):
+        lines += ["", "WARNINGS:"] + [f"  {w}" for w in r["warnings"]]
     if r.get("files"):
         lines += ["", "files:"] + [f"  {p}" for p in r["files"]]
+    return "\n".join(lines)
+
+
+def gains_toml(result: Any) -> str:
+    """The optimised gains as TOML tables to paste into a config (explicit gains)."""
+
+    def rows(M: Any) -> str:
+        arr = np.asarray(M, dtype=np.float64)
+        return "[" + ", ".join("[" + ", ".join(f"{v:.8g}" for v in row) + "]" for row in arr) + "]"
+
+    o = result.optimized
+    lines = [f"# found by dob-hil design --optimize: {o.summary}"]
+    if o.tune == "all":
+        lines += [
+            "[design.estimator]",
+            f"Lc = {rows(o.Lc)}",
+            "",
+            "[design.feedback]",
+            f"Kc = {rows(o.Kc)}",
+            "",
+        ]
+    lines += ["[design.dob]", f"Kdist = {rows(o.Kdist)}"]
     return "\n".join(lines)

@@ -6,9 +6,11 @@ controller (``dob_hil.control.step``) gives
     e(k+1) = (Phi - Phi Lc C - Gam Kdist Lc C) e(k)
     x(k+1) = (Phi - Gam Kc) x(k) + Gam (Kc - Kc Lc C - Kdist Lc C) e(k)
 
-a block-triangular system, so the closed loop is stable exactly when both diagonal blocks are. The
-estimator matrix Phi - Phi Lc C is the DOB matrix at Kdist = 0 and is required stable too (without
-it the paper's theorem does not apply, and the loop without the DOB would be unstable).
+a block-triangular system, so the closed loop's eigenvalues are exactly the union of those of the two
+diagonal blocks (Theorem 1), and it is stable exactly when both are. With the DOB off (Kdist = 0)
+the second block is the estimator matrix Phi - Phi Lc C. So the gate is: feedback stable, and the
+DOB matrix (DOB on) or the estimator matrix (DOB off) stable; an unstable estimator alone is not
+refused when the loop with the DOB is stable (that design then must not run with the DOB off).
 """
 
 from __future__ import annotations
@@ -50,8 +52,9 @@ def spectral_radii(
 
 
 def unstable_parts(radii: dict[str, list[float]], dob_enabled: bool) -> list[str]:
-    """Messages for every required matrix with rho >= 1 (the dob matrix only when the DOB is on)."""
-    required = ["estimator", "feedback"] + (["dob"] if dob_enabled else [])
+    """Messages for every matrix whose eigenvalues are closed-loop eigenvalues (Theorem 1) with rho >= 1:
+    the feedback matrix, and the dob matrix (DOB on) or the estimator matrix (DOB off)."""
+    required = ["feedback", "dob" if dob_enabled else "estimator"]
     out = []
     for key in required:
         mags = radii[key]

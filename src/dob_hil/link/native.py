@@ -1,17 +1,23 @@
 """The native drive profile: :class:`~dob_hil.link.base.DriveLink` over a python-can bus.
 
-One drive (``drive.node_id``), one axis. The frames are those of :mod:`dob_hil.link.protocol`;
-this module adds the transport: receiving and validating, unwrapping the encoder counter,
-quantizing and limiting the current, sending, and the enable/stop sequences.
+One drive (``drive.node_id``, 0..15), one axis. The frames are those of
+:mod:`dob_hil.link.protocol` (version 2); ``docs/PROTOCOL.md`` is the contract this module keeps
+on the host's side. This module adds the transport: receiving and validating, unwrapping the
+encoder counter, quantizing and limiting the current, sending, and the enable/stop sequences.
 
 Receiving. :meth:`NativeDriveLink.receive_feedback` blocks in ``bus.recv`` (it never spins) until
 a valid FEEDBACK of our node arrives. Everything else that arrives on the way is handed to
 ``frame_hook(msg, True)`` and then reported to ``event_hook`` and skipped: error frames
 (ERROR_FRAME), remote frames, 29-bit ids, other nodes' frames and ids of no native frame
-(FOREIGN_FRAME), our ids with a payload that does not decode (MALFORMED_FRAME), FEEDBACK whose
-sequence number is a duplicate or up to ``stale_window`` behind the last accepted one
-(STALE_FEEDBACK). FAULT frames give DRIVE_FAULT, heartbeats (and feedback status bits) that change
-the drive state give DRIVE_STATE. Our own COMMAND and CONTROL ids coming back (``udp_multicast``
+(FOREIGN_FRAME), our ids with a payload that does not decode (MALFORMED_FRAME; frames padded up
+to 8 bytes decode), a datagram or frame the bus itself could not deliver (``bus.recv`` raising
+``CanError``: MALFORMED_FRAME, after :data:`MAX_CONSECUTIVE_RX_ERRORS` in a row a DriveFault),
+a HEARTBEAT of another protocol version (MALFORMED_FRAME; an enable attempt then fails naming
+both versions), FEEDBACK whose sequence number is a duplicate or up to ``stale_window`` behind
+the last accepted one (STALE_FEEDBACK). The first FEEDBACK that reports ENABLED after a state
+other than ENABLED starts a new sequence (a drive may restart its counter on enable). FAULT
+frames give DRIVE_FAULT, heartbeats (and feedback status bits) that change the drive state give
+DRIVE_STATE. Our own COMMAND and CONTROL ids coming back (``udp_multicast``
 delivers a process its own frames even with ``receive_own_messages=False``) are skipped silently
 and only counted in :attr:`NativeDriveLink.stats`; they never reach the controller.
 
@@ -35,7 +41,16 @@ Enabling. :meth:`~NativeDriveLink.enable` = :meth:`~NativeDriveLink.request_enab
 between send and receive) use the split form: ``request_enable()``, then service the drive and
 call :meth:`~NativeDriveLink.poll_enabled` (non-blocking) until it returns True. An enable
 attempt succeeds when a HEARTBEAT or FEEDBACK received after the request shows the drive enabled;
-a FAULT frame during the attempt raises :class:`~dob_hil.errors.DriveFault`.
+a FAULT frame, or a drive that reports FAULT (it refuses to enable until a ClearFault), or a
+HEARTBEAT of another protocol version during the attempt raises :class:`~dob_hil.errors.DriveFault`
+naming the fault code and info, the frames rejected, and the remedy (``--clear-fault``).
+:meth:`~NativeDriveLink.clear_fault` sends ClearFault and waits for the drive to leave FAULT.
+
+Stopping. :meth:`~NativeDriveLink.safe_stop` sends one stop sequence: a zero-current COMMAND with
+the enable bit clear answering the newest feedback received (so the drive accepts it as valid; it
+is sent only to a drive last reported ENABLED or in FAULT, never to one reported DISABLED or not
+heard from, since a drive may fault on a COMMAND while DISABLED), then CONTROL disable. Once it
+went out, a second ``safe_stop`` (or :meth:`close`) sends nothing until the next enable request.
 """
 
 from __future__ import annotations
@@ -57,6 +72,8 @@ from dob_hil.link import protocol
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
 from dob_hil.link.protocol import (
     DLC,
+    MAX_PADDED_LEN,
+    PROTOCOL_VERSION,
     ControlRequest,
     DriveState,
     FaultCode,
@@ -72,12 +89,20 @@ _log = logging.getLogger(__name__)
 
 DEFAULT_STALE_WINDOW: Final = 32  # feedback up to this many sequence numbers behind is stale
 MAX_READS_AFTER_DEADLINE: Final = 1024  # bounds the drain of already-queued frames after a timeout
+MAX_CONSECUTIVE_RX_ERRORS: Final = 1000  # bus.recv raising this often in a row: the bus is broken
+MAX_STOP_DRAIN: Final = 256  # frames safe_stop reads (non-blocking) to find the newest feedback
+LEGACY_HEARTBEAT_BASE: Final = 0x700  # protocol version 1's HEARTBEAT id base (also CANopen NMT)
+CLEAR_FAULT_HINT: Final = (
+    "clear it with `dob-hil run --clear-fault` (or `clear_fault = true` in [drive]), "
+    "which sends ClearFault before enabling"
+)
 N_AXES: Final = 1
 
 
 _FEEDBACK_STRUCT: Final = struct.Struct("<iBB")  # the layout of protocol.FEEDBACK
 _COMMAND_STRUCT: Final = struct.Struct("<hB")  # the layout of protocol.COMMAND
 _FEEDBACK_DLC: Final = DLC[FrameKind.FEEDBACK]
+_MAX_LEN: Final = MAX_PADDED_LEN
 _STATUS_RESERVED: Final = protocol.STATUS_RESERVED_MASK
 _ENABLED: Final = int(Status.ENABLED)
 _FAULT: Final = int(Status.FAULT)
@@ -102,6 +127,9 @@ class LinkStats:
     foreign_frames: int = 0
     error_frames: int = 0
     own_echoes: int = 0  # our own COMMAND/CONTROL frames received back (udp_multicast)
+    rx_errors: int = 0  # bus.recv raised (a datagram or frame the interface could not decode)
+    version_mismatches: int = 0  # heartbeats of another protocol version
+    sequence_restarts: int = 0  # feedback sequence restarted when the drive entered ENABLED
     drive_faults: int = 0
     encoder_jumps: int = 0
     tx_frames: int = 0
@@ -211,6 +239,7 @@ class NativeDriveLink:
                 "drive.profile", f"NativeDriveLink drives the native profile, got {drive.profile!r}"
             )
         quantizer = DacQuantizer(drive)
+        self._clear_fault_first = drive.clear_fault
         if not drive.encoder_counts_per_unit > 0.0:
             raise ConfigError(
                 "drive.encoder_counts_per_unit", f"must be > 0, got {drive.encoder_counts_per_unit}"
@@ -221,7 +250,7 @@ class NativeDriveLink:
         try:
             self._feedback_id = frame_id(FrameKind.FEEDBACK, node)
         except ProtocolError as exc:
-            raise ConfigError("drive.node_id", str(exc)) from None
+            raise ConfigError("drive.node_id", str(exc).removeprefix("node_id: ")) from None
         self._fault_id = frame_id(FrameKind.FAULT, node)
         self._heartbeat_id = frame_id(FrameKind.HEARTBEAT, node)
         self._command_id = frame_id(FrameKind.COMMAND, node)
@@ -257,6 +286,13 @@ class NativeDriveLink:
         self._enable_mask = 0  # 0x80 while the host wants the drive enabled (COMMAND bit 7)
         self._enable_attempt_faults = -1  # stats.drive_faults when the enable attempt began; -1: none
         self._enable_seen = False
+        self._refusal: str | None = None  # why the drive refuses the current enable attempt
+        self._resync = False  # a heartbeat reported entering ENABLED: the next feedback may restart
+        self._peer_version: int | None = None  # a protocol version the drive reported, not ours
+        self._legacy_heartbeats = 0  # frames that look like a version-1 heartbeat of our node
+        self._first_rejection: str | None = None  # what the first malformed frame was
+        self._stopped = False  # a complete stop sequence went out and no enable since
+        self._rx_errors_in_row = 0
         self._closed = False
         # a valid feedback read while polling for enable is kept for the next receive_feedback()
         self._pending_feedback: Feedback | None = None
@@ -300,6 +336,20 @@ class NativeDriveLink:
         return self._last_fault
 
     @property
+    def fault_description(self) -> str | None:
+        """The last fault for an error message (with what to widen for a watchdog trip), or None."""
+        if self._last_fault is None:
+            return None
+        text = describe_fault(self._last_fault)
+        if self._last_fault.code is FaultCode.WATCHDOG:
+            text += (
+                "; the drive missed this host's commands: on a busy machine widen its watchdog "
+                "(drive.watchdog_periods; python -m firmware_sim --watchdog-periods) and the host "
+                "timeout (--feedback-timeout-periods) together"
+            )
+        return text
+
+    @property
     def last_seq(self) -> int | None:
         """Sequence number of the last accepted feedback."""
         return self._last_seq
@@ -334,9 +384,16 @@ class NativeDriveLink:
             try:  # (inlined rather than self._recv: this is the per-period path)
                 msg = recv(timeout_s)
             except can.CanError as exc:
-                raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
+                self._rx_error(exc)  # an event; raises once the bus is clearly broken
+                if deadline_ns:
+                    remaining_ns = deadline_ns - time.monotonic_ns()
+                    if remaining_ns <= 0:
+                        return None
+                    timeout_s = remaining_ns * 1e-9
+                continue
             if msg is None:
                 return None
+            self._rx_errors_in_row = 0
             now_ns = clock_ns()
             if hook is not None:
                 hook(msg, True)
@@ -365,10 +422,32 @@ class NativeDriveLink:
     def _recv(
         self, recv: Callable[[float | None], can.Message | None], timeout_s: float
     ) -> can.Message | None:
-        try:
-            return recv(timeout_s)
-        except can.CanError as exc:
-            raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
+        """One frame, or None on timeout; a frame the bus could not deliver is an event, not an end."""
+        while True:
+            try:
+                msg = recv(timeout_s)
+            except can.CanError as exc:
+                self._rx_error(exc)
+                continue
+            self._rx_errors_in_row = 0
+            return msg
+
+    def _rx_error(self, exc: can.CanError) -> None:
+        """``bus.recv`` raised: report it and read on; :data:`MAX_CONSECUTIVE_RX_ERRORS` in a row end it."""
+        self.stats.rx_errors += 1
+        self._rx_errors_in_row += 1
+        cause = exc.__cause__
+        detail = f"{exc}" + (f" ({type(cause).__name__}: {cause})" if cause is not None else "")
+        self._event(
+            self._clock_ns(),
+            LinkEventKind.MALFORMED_FRAME,
+            f"node {self._node}: the bus could not deliver a received frame, skipped: {detail}",
+        )
+        if self._rx_errors_in_row >= MAX_CONSECUTIVE_RX_ERRORS:
+            raise DriveFault(
+                f"node {self._node}: receiving from the CAN bus failed {self._rx_errors_in_row} times "
+                f"in a row: {detail}"
+            ) from exc
 
     def _dispatch(self, msg: can.Message, now_ns: int) -> Feedback | None:
         """Any received frame: validate, update the link state, report; a Feedback if it is one."""
@@ -387,6 +466,8 @@ class NativeDriveLink:
             if aid in self._own_tx_ids:
                 self.stats.own_echoes += 1
                 return None
+            if aid == LEGACY_HEARTBEAT_BASE + self._node and len(msg.data) == 1 and msg.data[0] <= 2:
+                self._legacy_heartbeats += 1
             self.stats.foreign_frames += 1
             self._event(
                 now_ns, LinkEventKind.FOREIGN_FRAME, f"{_describe(msg)} is no frame of node {self._node}"
@@ -399,7 +480,8 @@ class NativeDriveLink:
 
     def _on_feedback(self, msg: can.Message, now_ns: int) -> Feedback | None:
         data = msg.data
-        if len(data) != _FEEDBACK_DLC or data[5] & _STATUS_RESERVED:
+        n = len(data)
+        if n < _FEEDBACK_DLC or n > _MAX_LEN or data[5] & _STATUS_RESERVED:
             try:  # the codec names what is wrong
                 protocol.decode_feedback(data)
                 problem = "does not decode"
@@ -407,8 +489,17 @@ class NativeDriveLink:
                 problem = str(exc)
             self._malformed(now_ns, msg, problem)
             return None
-        raw_counts, seq, status = _FEEDBACK_STRUCT.unpack(data)
+        raw_counts, seq, status = _FEEDBACK_STRUCT.unpack_from(data)
         last_seq = self._last_seq
+        if (
+            status & _ENABLED
+            and not status & _FAULT
+            and (self._resync or self._state is not DriveState.ENABLED)
+        ):
+            if last_seq is not None and (seq - last_seq) & 0xFF != 1:
+                self.stats.sequence_restarts += 1
+            last_seq = None  # entering ENABLED: the drive may restart its sequence (PROTOCOL.md)
+            self._resync = False
         if last_seq is not None:
             ahead = (seq - last_seq) & 0xFF
             if ahead == 0 or ahead >= self._stale_from:
@@ -441,7 +532,7 @@ class NativeDriveLink:
         if state is not self._state:
             self._change_state(now_ns, state, "feedback status")
         elif self._enable_attempt_faults >= 0:
-            self._enable_seen = state is DriveState.ENABLED
+            self._attempt_report(state)
         self.stats.feedback += 1
         return Feedback(
             now_ns,
@@ -460,9 +551,13 @@ class NativeDriveLink:
         except ProtocolError as exc:
             self._malformed(now_ns, msg, str(exc))
             return None
+        repeat = self._state is DriveState.FAULT and fault == self._last_fault
         self._last_fault = fault
+        if repeat:  # the drive repeats its FAULT frame while in FAULT: no new fault, no new event
+            return None
         self._state = DriveState.FAULT
         self._enable_seen = False
+        self._stopped = False  # the drive changed state on its own: a later stop is sent again
         self.stats.drive_faults += 1
         self._event(
             now_ns, LinkEventKind.DRIVE_FAULT, f"node {self._node}: drive fault {describe_fault(fault)}"
@@ -471,25 +566,54 @@ class NativeDriveLink:
 
     def _on_heartbeat(self, msg: can.Message, now_ns: int) -> None:
         try:
-            state = protocol.decode_heartbeat(msg.data).state
+            heartbeat = protocol.decode_heartbeat(msg.data)
         except ProtocolError as exc:
             self._malformed(now_ns, msg, str(exc))
             return None
+        if heartbeat.version != PROTOCOL_VERSION:
+            self.stats.version_mismatches += 1
+            self._peer_version = heartbeat.version
+            if self._enable_attempt_faults >= 0:
+                self._refusal = self._version_text()
+            self._malformed(now_ns, msg, self._version_text())
+            return None
+        state = heartbeat.state
+        if state is DriveState.ENABLED and self._state is not DriveState.ENABLED:
+            self._resync = True
         if state is not self._state:
             self._change_state(now_ns, state, "heartbeat")
         elif self._enable_attempt_faults >= 0:
-            self._enable_seen = state is DriveState.ENABLED
+            self._attempt_report(state)
         return None
 
     def _change_state(self, now_ns: int, state: DriveState, source: str) -> None:
         old = "unknown" if self._state is None else self._state.name
         self._state = state
         if self._enable_attempt_faults >= 0:
-            self._enable_seen = state is DriveState.ENABLED
+            self._attempt_report(state)
         self._event(now_ns, LinkEventKind.DRIVE_STATE, f"node {self._node}: {old} -> {state.name} ({source})")
+
+    def _attempt_report(self, state: DriveState) -> None:
+        """A state the drive reported during an enable attempt."""
+        self._enable_seen = state is DriveState.ENABLED
+        if state is DriveState.FAULT:  # a drive in FAULT refuses to enable until ClearFault
+            self._refusal = f"the drive is in FAULT ({self._fault_text()})"
+
+    def _version_text(self) -> str:
+        return (
+            f"the drive speaks native protocol version {self._peer_version}, "
+            f"this host version {PROTOCOL_VERSION}"
+        )
+
+    def _fault_text(self) -> str:
+        if self._last_fault is None:
+            return "fault code unknown: its FAULT frame was sent before this host listened"
+        return f"last fault {describe_fault(self._last_fault)}"
 
     def _malformed(self, now_ns: int, msg: can.Message, problem: str) -> None:
         self.stats.malformed_frames += 1
+        if self._first_rejection is None:
+            self._first_rejection = f"{_describe(msg)}: {problem}"
         self._event(now_ns, LinkEventKind.MALFORMED_FRAME, f"{_describe(msg)} skipped: {problem}")
 
     def _event(self, time_ns: int, kind: LinkEventKind, message: str) -> None:
@@ -564,7 +688,9 @@ class NativeDriveLink:
         """Send CONTROL enable and start an enable attempt; commands carry the enable bit from now on."""
         self._enable_attempt_faults = self.stats.drive_faults
         self._enable_seen = False
+        self._refusal = self._version_text() if self._peer_version is not None else None
         self._enable_mask = 0x80
+        self._stopped = False
         self._send_control(ControlRequest.ENABLE)
 
     def poll_enabled(self) -> bool:
@@ -592,8 +718,7 @@ class NativeDriveLink:
                 break
             self._consume(msg)
             self._check_attempt()
-            if self._enable_seen:
-                self._attempt_result()
+            if self._enable_seen and self.poll_enabled():  # still so once every queued frame is read
                 return
         if self.poll_enabled():  # frames that were queued when the deadline passed
             return
@@ -603,11 +728,38 @@ class NativeDriveLink:
         self._enable_mask = 0
         self._enable_attempt_faults = -1
         state = "nothing" if self._state is None else self._state.name
-        fault = "" if self._last_fault is None else f"; last fault {describe_fault(self._last_fault)}"
-        return DriveFault(
+        fault = ""
+        if self._state is DriveState.FAULT or self._last_fault is not None:
+            fault = f"; {self._fault_text()}"
+        text = (
             f"node {self._node}: the drive did not report enabled within {timeout_ns / 1e6:g} ms "
-            f"(last reported state: {state}{fault})"
+            f"(last reported state: {state}{fault}){self._diagnosis()}"
         )
+        if self._state is DriveState.FAULT:
+            text += f"; {CLEAR_FAULT_HINT}"
+        elif self._state is None:
+            text += "; check the bus (interface, channel, bitrate, udp_multicast port) and drive.node_id"
+        return DriveFault(text)
+
+    def _diagnosis(self, *, version: bool = True) -> str:
+        """What the link rejected of our node so far, for an enable failure."""
+        s = self.stats
+        parts = []
+        rejected = s.malformed_frames + s.stale_feedback
+        if rejected or s.rx_errors:
+            first = f"; first: {self._first_rejection}" if self._first_rejection else ""
+            parts.append(
+                f"; rejected {rejected} frame(s) of node {self._node} ({s.malformed_frames} malformed, "
+                f"{s.stale_feedback} stale, {s.rx_errors} undeliverable{first})"
+            )
+        if version and self._peer_version is not None:
+            parts.append(f"; {self._version_text()}")
+        if self._legacy_heartbeats:
+            parts.append(
+                f"; heard {self._legacy_heartbeats} frame(s) at 0x{LEGACY_HEARTBEAT_BASE + self._node:03X} "
+                "that look like a native protocol version 1 heartbeat (or a CANopen node's)"
+            )
+        return "".join(parts)
 
     def enable(self, timeout_ns: int, retry_interval_ns: int = 100_000_000) -> None:
         """request_enable() then wait_enabled(): for a drive serviced by its own clock.
@@ -617,6 +769,8 @@ class NativeDriveLink:
         process) that comes up after the request never saw it. A fault reported meanwhile ends
         the attempt at once with :class:`~dob_hil.errors.DriveFault`.
         """
+        if self._clear_fault_first:
+            self.clear_fault(timeout_ns)
         deadline_ns = time.monotonic_ns() + timeout_ns
         faults_before = self.stats.drive_faults
         while True:
@@ -626,14 +780,18 @@ class NativeDriveLink:
                 self.wait_enabled(max(0, min(retry_interval_ns, remaining_ns)))
                 return
             except DriveFault:
-                if self.stats.drive_faults > faults_before:
+                if self.stats.drive_faults > faults_before or self._refusal is not None:
                     raise
                 if time.monotonic_ns() >= deadline_ns:
                     raise self._not_enabled(timeout_ns) from None
 
     def enable_lockstep(self, service: Callable[[], int], max_rounds: int = 3) -> None:
         """Enable against a drive serviced in this thread (the embedded lockstep drive):
-        ``service()`` lets the drive act on the request between polls; DriveFault if it does not."""
+        ``service()`` lets the drive act on the request between polls; DriveFault if it does not.
+        With ``drive.clear_fault`` a ClearFault goes first."""
+        if self._clear_fault_first:
+            self.request_clear_fault()
+            service()
         self.request_enable()
         for _ in range(max_rounds):
             service()
@@ -642,40 +800,101 @@ class NativeDriveLink:
         raise DriveFault(f"node {self._node}: the simulated drive did not report enabled")
 
     def request_clear_fault(self) -> None:
-        """Send CONTROL clear-fault; the drive reports its new state in a heartbeat."""
+        """Send CONTROL clear-fault; the drive answers with a HEARTBEAT of its new state."""
         self._send_control(ControlRequest.CLEAR_FAULT)
 
+    def clear_fault(self, timeout_ns: int, retry_interval_ns: int = 100_000_000) -> None:
+        """Send ClearFault (repeated every ``retry_interval_ns``) until the drive reports a state
+        other than FAULT; :class:`~dob_hil.errors.DriveFault` naming the fault if it does not.
+
+        A drive that is not in FAULT answers with its state, so this is harmless before any enable.
+        """
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        while True:
+            self._state = None  # only a report sent after the request counts
+            self.request_clear_fault()
+            retry_ns = time.monotonic_ns() + min(retry_interval_ns, max(0, deadline_ns - time.monotonic_ns()))
+            while True:
+                remaining_ns = retry_ns - time.monotonic_ns()
+                msg = self._recv(self._bus.recv, max(remaining_ns, 0) * 1e-9)
+                if msg is not None:
+                    self._consume(msg)
+                if self._out_of_fault():
+                    return
+                if msg is None or time.monotonic_ns() >= retry_ns:
+                    break
+            if time.monotonic_ns() >= deadline_ns:
+                state = "nothing" if self._state is None else self._state.name
+                raise DriveFault(
+                    f"node {self._node}: the drive did not leave FAULT within {timeout_ns / 1e6:g} ms of "
+                    f"ClearFault (last reported state: {state}; {self._fault_text()}){self._diagnosis()}"
+                )
+
+    def _out_of_fault(self) -> bool:
+        return self._state is not None and self._state is not DriveState.FAULT
+
     def disable(self) -> None:
-        """Zero-current COMMAND with the enable bit clear, then CONTROL disable. Raises DriveFault."""
-        self._enable_mask = 0
-        self._enable_attempt_faults = -1
-        seq = 0 if self._last_seq is None else self._last_seq
-        self._send(self._command_id, _COMMAND_STRUCT.pack(0, seq & 0x7F), "COMMAND (stop)")
-        self._send_control(ControlRequest.DISABLE)
+        """The stop sequence (see :meth:`safe_stop`), raising DriveFault when a frame cannot be sent."""
+        self._stop_sequence(raise_errors=True)
 
     def safe_stop(self) -> None:
-        """Zero current with the enable bit clear, then CONTROL disable. Never raises; repeatable.
+        """The stop sequence, once. Never raises.
 
-        Each frame is attempted even if the other fails; failures are reported to ``event_hook``
-        (and the Python log if even that fails). After :meth:`close` it does nothing.
+        Reads the frames already queued (non-blocking) so that the newest feedback is known; if
+        the drive was last reported ENABLED (or FAULT: a report that may be corrupt, and a faulted
+        drive ignores it), sends a zero-current COMMAND with the enable bit clear answering that
+        feedback; then CONTROL disable. Each frame is attempted even if the
+        other fails; failures are reported to ``event_hook`` (and the Python log if even that
+        fails), and a stop with a failed frame is tried again by the next call. A stop that went
+        out is not repeated until the next :meth:`request_enable`. After :meth:`close` it does
+        nothing.
         """
-        if self._closed:
+        if self._closed or self._stopped:
             return
+        self._stop_sequence(raise_errors=False)
+
+    def _stop_sequence(self, *, raise_errors: bool) -> None:
         self._enable_mask = 0
         self._enable_attempt_faults = -1
-        seq = 0 if self._last_seq is None else self._last_seq
-        self._stop_step(
-            "COMMAND (stop)",
-            lambda: self._send(self._command_id, _COMMAND_STRUCT.pack(0, seq & 0x7F), "COMMAND (stop)"),
+        self._stop_step("reading queued frames", self._drain_queued, raise_errors)
+        ok = True
+        if self._state is DriveState.ENABLED or self._state is DriveState.FAULT:
+            seq = 0 if self._last_seq is None else self._last_seq
+            payload = _COMMAND_STRUCT.pack(0, seq & 0x7F)
+            ok = self._stop_step(
+                "COMMAND (stop)",
+                lambda: self._send(self._command_id, payload, "COMMAND (stop)"),
+                raise_errors,
+            )
+        ok = (
+            self._stop_step(
+                "CONTROL DISABLE", lambda: self._send_control(ControlRequest.DISABLE), raise_errors
+            )
+            and ok
         )
-        self._stop_step("CONTROL DISABLE", lambda: self._send_control(ControlRequest.DISABLE))
+        self._stopped = ok
 
-    def _stop_step(self, what: str, step: Callable[[], None]) -> None:
+    def _drain_queued(self) -> None:
+        """Read up to :data:`MAX_STOP_DRAIN` frames already queued (the newest feedback last)."""
+        for _ in range(MAX_STOP_DRAIN):
+            msg = self._recv(self._bus.recv, 0.0)
+            if msg is None:
+                return
+            self._consume(msg)
+        self._pending_feedback = None
+
+    def _stop_step(self, what: str, step: Callable[[], None], raise_errors: bool = False) -> bool:
+        """Run one step of the stop sequence; True if it succeeded."""
         try:
             step()
+            return True
         except DriveFault:
-            pass  # _send reported SEND_FAILED already
+            if raise_errors:
+                raise
+            return False  # _send reported SEND_FAILED already (or the bus is broken)
         except Exception as exc:
+            if raise_errors:
+                raise
             try:
                 self._event(
                     self._clock_ns(),
@@ -684,6 +903,7 @@ class NativeDriveLink:
                 )
             except Exception:
                 _log.exception("safe_stop of node %d: %s failed and event_hook raised", self._node, what)
+            return False
 
     def close(self) -> None:
         """safe_stop() once, then shut the bus down if this link owns it. Safe to call twice."""
@@ -722,7 +942,17 @@ class NativeDriveLink:
             self._enable_mask = 0
             self._enable_attempt_faults = -1
             fault = "?" if self._last_fault is None else describe_fault(self._last_fault)
-            raise DriveFault(f"node {self._node}: the drive faulted while enabling: {fault}")
+            raise DriveFault(
+                f"node {self._node}: the drive faulted while enabling: {fault}{self._diagnosis()}; "
+                f"{CLEAR_FAULT_HINT}"
+            )
+        if self._refusal is not None and not self._enable_seen:
+            refusal, self._refusal = self._refusal, None
+            self._enable_mask = 0
+            self._enable_attempt_faults = -1
+            hint = "" if self._peer_version is not None else f"; {CLEAR_FAULT_HINT}"
+            diagnosis = self._diagnosis(version=False)
+            raise DriveFault(f"node {self._node}: the drive refuses to enable: {refusal}{diagnosis}{hint}")
 
     def _attempt_result(self) -> bool:
         if self._enable_seen:

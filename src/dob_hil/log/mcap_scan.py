@@ -12,6 +12,7 @@ Records follow the MCAP specification (https://mcap.dev/spec): ``opcode u8, leng
 from __future__ import annotations
 
 import bisect
+import contextlib
 import mmap
 import struct
 import zlib
@@ -50,6 +51,7 @@ OP_NAMES: Final = {
     0x0F: "DataEnd",
 }
 FOOTER_SIZE: Final = 1 + 8 + 20
+MAX_ATTACHMENT_BYTES: Final = 16 << 20  # design.json and config.toml are a few KB
 # Records a data section may hold (our writer writes no Message outside a chunk; one is reported).
 _DATA_SECTION_OPS: Final = frozenset({0x03, 0x04, 0x06, 0x07, 0x09, 0x0C, 0x0F})
 _OP_LEN = struct.Struct("<BQ")
@@ -289,7 +291,10 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
     pos = len(MAGIC)
     last_chunk: ChunkRef | None = None
     data_end_found = False
+    released = 0  # file pages the walk touched are dropped from this process every 64 MiB
     while True:
+        if pos - released >= _RELEASE_BYTES:
+            released = _release(buf, released, pos)
         if pos >= data_limit:
             if summary is None:
                 _warn_truncated(fmap, pos, None)
@@ -329,8 +334,14 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
                     name, data = _parse_metadata(buf, start, end)
                     fmap.metadata[name] = data
                 elif op == OP_ATTACHMENT:
-                    name, blob = _parse_attachment(buf, start, end)
-                    fmap.attachments[name] = blob
+                    if length > MAX_ATTACHMENT_BYTES:
+                        fmap.warnings.append(
+                            f"record at byte {pos}: attachment of {length} bytes (more than "
+                            f"{MAX_ATTACHMENT_BYTES}); skipped"
+                        )
+                    else:
+                        name, blob = _parse_attachment(buf, start, end)
+                        fmap.attachments[name] = blob
                 elif op == OP_DATA_END:
                     if summary is not None and end != summary.data_end:
                         raise RecordError(f"it ends at byte {end}, the summary starts at {summary.data_end}")
@@ -355,6 +366,7 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
             pos = resume
             continue
         pos = end
+    _release(buf, released, pos)
     if summary is not None:
         for record in summary.schemas.values():
             fmap.schemas.setdefault(record.id, record)
@@ -364,6 +376,21 @@ def scan(buf: Buffer, path: str = "log") -> FileMap:
         fmap.warnings.append("the file has no valid footer: it was not closed cleanly")
     fmap.complete = summary is not None and data_end_found and not fmap.warnings
     return fmap
+
+
+_RELEASE_BYTES: Final = 64 << 20
+
+
+def _release(buf: Buffer, start: int, end: int) -> int:
+    """Drop the mapped file pages of ``buf[start:end]`` from this process (page cache keeps them),
+    so mapping a long log does not grow the resident size; returns the new release mark."""
+    if isinstance(buf, mmap.mmap) and hasattr(buf, "madvise"):
+        first = start // mmap.PAGESIZE * mmap.PAGESIZE
+        last = end // mmap.PAGESIZE * mmap.PAGESIZE
+        if last > first:
+            with contextlib.suppress(OSError, ValueError):
+                buf.madvise(mmap.MADV_DONTNEED, first, last - first)
+    return end
 
 
 def _plausible(buf: Buffer, pos: int, limit: int, truncation_possible: bool) -> bool:

@@ -15,7 +15,7 @@ import dob_hil
 from dob_hil.log.schemas import LogLayout, channel_specs
 
 LOG_FORMAT_NAME = "dob_hil.log"
-LOG_FORMAT_VERSION = "1"
+LOG_FORMAT_VERSION = "2"  # 2: events are ros2msg/cdr dob_hil/msg/Event; sequence numbers set at the source
 
 
 def _version(distribution: str) -> str:

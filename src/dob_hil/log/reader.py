@@ -45,6 +45,7 @@ from dob_hil.log.schemas import (
     LogLayout,
     SchemaError,
     channel_specs,
+    decode_event_cdr,
     msg_dtype,
     parse_msg,
 )
@@ -55,7 +56,14 @@ except ImportError:  # pragma: no cover
     _lz4_frame = None
 
 GROUP_BYTES: Final = 8 << 20
-MAX_CHUNK_BYTES: Final = 1 << 30  # a larger uncompressed size is a corrupted field
+# What a chunk may claim, decompressed: at most MAX_CHUNK_BYTES, and at most MAX_CHUNK_RATIO times
+# its compressed size (at least MIN_CHUNK_CLAIM_BYTES): a crafted 37 KB file cannot make the reader
+# allocate gigabytes (a zstd frame of zeros expands 32000-fold). The writer's chunks are 256 KiB
+# and compress 2-3 fold.
+MAX_CHUNK_BYTES: Final = 64 << 20
+MAX_CHUNK_RATIO: Final = 256
+MIN_CHUNK_CLAIM_BYTES: Final = 1 << 20
+READ_AHEAD_BYTES: Final = 32 << 20  # decompressed bytes in flight at most (and one chunk)
 FIXED_TOPICS: Final = (TOPIC_SAMPLE, TOPIC_CAN, TOPIC_CAN_FD, TOPIC_TRUTH)
 _HEADER_DTYPE: Final = np.dtype(
     {
@@ -160,6 +168,41 @@ def read_log(
         mm.close()
 
 
+def iter_channel(
+    path: Path | str, topic: str, fields: Iterable[str] | None = None, *, verify_crc: bool = True
+) -> Iterator[StructArray]:
+    """The messages of one fixed-size channel, block by block (one block per ~8 MiB of chunks).
+
+    Memory stays bounded whatever the log's length: only one group of chunks and its block are
+    held at a time. Warnings about damage are not reported here (read them with
+    :func:`read_log` restricted to the events, which maps the whole file cheaply).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            if f.seek(0, 2) == 0:
+                raise LogReadError(f"{path}: empty file, not an MCAP log")
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except OSError as exc:
+        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    try:
+        keep = None if fields is None else {topic: tuple(fields)}
+        reader = _Reader(mm, str(path), {topic}, verify_crc, keep)
+        reader._learn_channels()
+        layout = reader._layout()
+        fixed, _ = reader._outputs(layout)
+        for group in reader._groups():
+            table = reader._table(group)
+            for out in fixed.values():
+                out.out, out.filled = out.out[:0], 0  # a fresh array per block
+                reader._gather_fixed(group, table, out)
+                if out.filled:
+                    yield out.out[: out.filled]
+            reader._release(group)
+    finally:
+        mm.close()
+
+
 class _Reader:
     def __init__(
         self,
@@ -178,6 +221,7 @@ class _Reader:
         self.warnings = self.fmap.warnings
         self.dctx = zstandard.ZstdDecompressor()
         self.first_data: tuple[ChunkRef, bytes] | None = None
+        self.event_json = False
 
     # ------------------------------------------------------------------ top level
     def read(self) -> LogData:
@@ -283,8 +327,9 @@ class _Reader:
         for channel in self.fmap.channels.values():
             if self.topics is not None and channel.topic not in self.topics:
                 continue
-            if channel.topic == TOPIC_EVENT and channel.message_encoding == "json":
+            if channel.topic == TOPIC_EVENT and channel.message_encoding in ("json", "cdr"):
                 event_channel = channel.id
+                self.event_json = channel.message_encoding == "json"  # format 1 logs
                 continue
             if channel.topic not in FIXED_TOPICS:
                 continue
@@ -325,19 +370,26 @@ class _Reader:
     ) -> bytes | None:
         if self.first_data is not None and self.first_data[0] is chunk:
             return self.first_data[1]
-        raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
         where = f"chunk at byte {chunk.offset}"
-        if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        if chunk.uncompressed_size > chunk_claim_limit(chunk.data_length):
             if warn:
-                self.warnings.append(f"{where}: implausible size {chunk.uncompressed_size}; chunk skipped")
+                self.warnings.append(
+                    f"{where}: implausible uncompressed size {chunk.uncompressed_size} for "
+                    f"{chunk.data_length} compressed bytes; chunk skipped"
+                )
             return None
+        raw = self.mm[chunk.data_offset : chunk.data_offset + chunk.data_length]
         try:
             if chunk.compression == "zstd":
+                declared = zstandard.frame_content_size(raw)
+                if declared > chunk.uncompressed_size:
+                    raise ValueError(f"its zstd frame declares {declared} bytes")
+                # without a declared size, max_output_size bounds what is allocated
                 data = (dctx or self.dctx).decompress(raw, max_output_size=chunk.uncompressed_size)
             elif chunk.compression == "":
                 data = raw
             elif chunk.compression == "lz4" and _lz4_frame is not None:
-                data = _lz4_frame.decompress(raw)
+                data = _lz4_frame.LZ4FrameDecompressor().decompress(raw, max_length=chunk.uncompressed_size)
             else:
                 if warn:
                     self.warnings.append(
@@ -365,7 +417,9 @@ class _Reader:
         """Every chunk decompressed and checked, in file order, by a small thread pool.
 
         zstd and crc32 release the GIL, so a second core nearly halves the read time. At most
-        ``_READ_AHEAD`` chunks are in flight, so memory stays bounded for any file size.
+        ``_READ_AHEAD`` chunks and ``READ_AHEAD_BYTES`` (decompressed, as the chunks declare them,
+        each already bounded by :func:`chunk_claim_limit`) are in flight, so memory stays bounded
+        for any file, hostile ones included.
         """
         chunks = self.fmap.chunks
         if len(chunks) < 4:
@@ -382,12 +436,15 @@ class _Reader:
 
         with ThreadPoolExecutor(max_workers=_READ_THREADS) as pool:
             pending: deque[tuple[ChunkRef, Future[bytes | None]]] = deque()
-            it = iter(chunks)
-            for chunk in it:
-                pending.append((chunk, pool.submit(work, chunk)))
-                if len(pending) >= _READ_AHEAD:
+            in_flight = 0
+            for chunk in chunks:
+                claim = min(chunk.uncompressed_size, MAX_CHUNK_BYTES)
+                while pending and (len(pending) >= _READ_AHEAD or in_flight + claim > READ_AHEAD_BYTES):
                     done, fut = pending.popleft()
+                    in_flight -= min(done.uncompressed_size, MAX_CHUNK_BYTES)
                     yield done, fut.result()
+                pending.append((chunk, pool.submit(work, chunk)))
+                in_flight += claim
             while pending:
                 done, fut = pending.popleft()
                 yield done, fut.result()
@@ -546,13 +603,19 @@ class _Reader:
         for offset, length in zip(
             table.offsets[select].tolist(), table.lengths[select].tolist(), strict=True
         ):
+            payload = buf[offset + MESSAGE_RECORD_OVERHEAD : offset + 9 + length]
             try:
-                event = json.loads(buf[offset + MESSAGE_RECORD_OVERHEAD : offset + 9 + length])
-            except ValueError as exc:
-                self.warnings.append(f"{TOPIC_EVENT}: a message is not JSON ({exc}); skipped")
+                event = json.loads(payload) if self.event_json else decode_event_cdr(payload)
+            except (ValueError, RecursionError) as exc:
+                self.warnings.append(f"{TOPIC_EVENT}: a message is not an event ({exc}); skipped")
                 continue
             if isinstance(event, dict):
                 events.append(event)
+
+
+def chunk_claim_limit(compressed_bytes: int) -> int:
+    """The largest uncompressed size a chunk of ``compressed_bytes`` may declare (see MAX_CHUNK_*)."""
+    return min(MAX_CHUNK_BYTES, max(MIN_CHUNK_CLAIM_BYTES, MAX_CHUNK_RATIO * compressed_bytes))
 
 
 @dataclass(slots=True)
@@ -583,4 +646,4 @@ def _spec_dtype(fields: Any) -> np.dtype[np.void]:
     return msg_dtype(fields)
 
 
-__all__ = ["LogData", "read_log"]
+__all__ = ["LogData", "iter_channel", "read_log"]

@@ -37,7 +37,8 @@ SCHEMA_SAMPLE: Final = "dob_hil/msg/Sample"
 SCHEMA_CAN: Final = "dob_hil/msg/CanFrame"
 SCHEMA_CAN_FD: Final = "dob_hil/msg/CanFdFrame"
 SCHEMA_TRUTH: Final = "dob_hil/msg/GroundTruth"
-SCHEMA_EVENT: Final = "dob_hil/Event"
+SCHEMA_EVENT: Final = "dob_hil/msg/Event"
+SCHEMA_EVENT_JSON_V1: Final = "dob_hil/Event"  # logs of format version 1: JSON events (still read)
 
 CAN_DATA_BYTES: Final = 8
 CAN_FD_DATA_BYTES: Final = 64
@@ -53,6 +54,8 @@ CAN_FLAG_EXTENDED: Final = 1 << 0
 CAN_FLAG_ERROR: Final = 1 << 1
 CAN_FLAG_REMOTE: Final = 1 << 2
 CAN_FLAG_FD: Final = 1 << 3
+CAN_FLAG_BRS: Final = 1 << 4  # CAN FD bit rate switch
+CAN_FLAG_ESI: Final = 1 << 5  # CAN FD error state indicator
 CAN_RX: Final = 0
 CAN_TX: Final = 1
 
@@ -171,7 +174,12 @@ def can_fields(data_bytes: int = CAN_DATA_BYTES) -> tuple[Field, ...]:
         Field("arbitration_id", "uint32"),
         Field("direction", "uint8", None, "0 rx, 1 tx"),
         Field("dlc", "uint8", None, "data length in bytes"),
-        Field("flags", "uint8", None, "bit0 extended, bit1 error frame, bit2 remote, bit3 fd"),
+        Field(
+            "flags",
+            "uint8",
+            None,
+            "bit0 extended, bit1 error frame, bit2 remote, bit3 fd, bit4 brs, bit5 esi",
+        ),
         Field("data", "uint8", data_bytes, "zero padded"),
     )
 
@@ -283,23 +291,59 @@ def body_size(fields: tuple[Field, ...]) -> int:
     return cdr_offsets(fields)[1]
 
 
-EVENT_JSON_SCHEMA: Final[dict[str, object]] = {
-    "title": SCHEMA_EVENT,
-    "description": "State changes, faults, overruns, warnings and dropped log records",
-    "type": "object",
-    "properties": {
-        "time_ns": {"type": "integer", "description": "event time, ns (the loop's clock)"},
-        "level": {"type": "string", "enum": list(EVENT_LEVELS)},
-        "kind": {"type": "string", "description": "machine-readable kind, e.g. drive_fault, log_overflow"},
-        "message": {"type": "string"},
-        "data": {"type": "object"},
-    },
-    "required": ["time_ns", "level", "kind", "message", "data"],
-}
+EVENT_MSG_TEXT: Final = """\
+uint64 time_ns  # event time, ns (the loop's clock)
+string level  # info, warning or error
+string kind  # machine-readable kind, e.g. drive_fault, log_overflow
+string message
+string data  # a JSON object: the event's details
+"""
 
 
-def event_schema_bytes() -> bytes:
-    return json.dumps(EVENT_JSON_SCHEMA, indent=1).encode()
+def encode_event_cdr(time_ns: int, level: str, kind: str, message: str, data_json: str) -> bytes:
+    """The CDR payload (encapsulation header included) of one ``dob_hil/msg/Event``.
+
+    CDR: ``uint64`` at offset 0 of the body, then each string as a ``uint32`` length (bytes + NUL)
+    aligned to 4, its UTF-8 bytes and a NUL.
+    """
+    out = bytearray(CDR_HEADER)
+    out += struct.pack("<Q", time_ns)
+    for text in (level, kind, message, data_json):
+        raw = text.encode("utf-8", errors="replace")
+        body_pos = len(out) - 4
+        out += bytes(-body_pos % 4)
+        out += struct.pack("<I", len(raw) + 1)
+        out += raw
+        out += b"\x00"
+    return bytes(out)
+
+
+def decode_event_cdr(payload: bytes | bytearray | memoryview) -> dict[str, object]:
+    """Inverse of :func:`encode_event_cdr`: ``{"time_ns", "level", "kind", "message", "data"}``.
+
+    Raises ValueError for a payload that is not such a message (``data`` must be a JSON object).
+    """
+    buf = bytes(payload)
+    if len(buf) < 12 or buf[:4] != CDR_HEADER:
+        raise ValueError("not a little-endian CDR message")
+    body = memoryview(buf)[4:]
+    (time_ns,) = struct.unpack_from("<Q", body, 0)
+    pos = 8
+    texts: list[str] = []
+    for _ in range(4):
+        pos += -pos % 4
+        if pos + 4 > len(body):
+            raise ValueError("string field runs past the message end")
+        (length,) = struct.unpack_from("<I", body, pos)
+        pos += 4
+        if length < 1 or pos + length > len(body) or body[pos + length - 1] != 0:
+            raise ValueError("string field of a bad length")
+        texts.append(bytes(body[pos : pos + length - 1]).decode("utf-8", errors="replace"))
+        pos += length
+    data = json.loads(texts[3])
+    if not isinstance(data, dict):
+        raise ValueError("event data is not a JSON object")
+    return {"time_ns": int(time_ns), "level": texts[0], "kind": texts[1], "message": texts[2], "data": data}
 
 
 @dataclass(frozen=True, slots=True)
@@ -311,10 +355,10 @@ class ChannelSpec:
     schema_name: str
     schema_encoding: str
     message_encoding: str
-    fields: tuple[Field, ...] | None
+    fields: tuple[Field, ...] | None  # None: the variable-length event message
 
     def schema_data(self) -> bytes:
-        return event_schema_bytes() if self.fields is None else msg_text(self.fields).encode()
+        return EVENT_MSG_TEXT.encode() if self.fields is None else msg_text(self.fields).encode()
 
 
 CH_SAMPLE: Final = 1
@@ -331,13 +375,20 @@ def channel_specs(layout: LogLayout) -> tuple[ChannelSpec, ...]:
         ChannelSpec(CH_CAN, TOPIC_CAN, SCHEMA_CAN, "ros2msg", "cdr", can_fields(CAN_DATA_BYTES)),
         ChannelSpec(CH_CAN_FD, TOPIC_CAN_FD, SCHEMA_CAN_FD, "ros2msg", "cdr", can_fields(CAN_FD_DATA_BYTES)),
         ChannelSpec(CH_TRUTH, TOPIC_TRUTH, SCHEMA_TRUTH, "ros2msg", "cdr", truth_fields(layout)),
-        ChannelSpec(CH_EVENT, TOPIC_EVENT, SCHEMA_EVENT, "jsonschema", "json", None),
+        ChannelSpec(CH_EVENT, TOPIC_EVENT, SCHEMA_EVENT, "ros2msg", "cdr", None),
     )
 
 
+OP_MESSAGE: Final = 0x05
+# An MCAP Message record's header: opcode, record length, channel, sequence, log time, publish time.
+MESSAGE_HEADER: Final = struct.Struct("<BQHIQQ")
+
+
 def record_struct(fields: tuple[Field, ...]) -> struct.Struct:
-    """Pipe record of one CDR message: ``<BQI`` header (channel, log_time_ns, length), header, body."""
-    return struct.Struct("<BQII" + struct_body_format(fields))
+    """One MCAP Message record of a fixed-size CDR message: header, CDR encapsulation, body."""
+    return struct.Struct("<BQHIQQI" + struct_body_format(fields))
 
 
-PIPE_HEADER: Final = struct.Struct("<BQI")  # channel u8, log_time_ns u64, payload length u32
+def record_length(fields: tuple[Field, ...]) -> int:
+    """The Message record's length field (everything after opcode and length) for ``fields``."""
+    return MESSAGE_RECORD_OVERHEAD - 9 + 4 + body_size(fields)

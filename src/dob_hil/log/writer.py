@@ -1,13 +1,28 @@
 """LogWriter: the control-thread side of the log.
 
-The control thread only packs each record with one precomputed :class:`struct.Struct` and
-appends it to a local batch (a ``bytearray``). :meth:`LogWriter.flush` hands the batch to the
-writer process through a non-blocking pipe; what the pipe does not take waits in a bounded
-backlog, and when the backlog is full whole batches are dropped, counted, and reported by a
-``log_overflow`` event as soon as there is room again. Nothing here ever blocks on the writer
-process, except construction (waits for the process to open the file) and :meth:`close`.
+The control thread only packs each record -- a complete MCAP Message record, with its per-channel
+sequence number -- with one precomputed :class:`struct.Struct` and appends it to a local batch (a
+``bytearray``). :meth:`LogWriter.flush` hands the batch to the writer process through a
+non-blocking pipe; what the pipe does not take waits in a bounded backlog. When the backlog is
+full the policy decides:
 
-Call every method from one thread (the control thread): the writer is not thread-safe.
+* ``backpressure=True`` (the default; lockstep, where nothing forces real time): the loop waits
+  for the writer process, and the time it waited is counted (:attr:`LogStats.backpressure_wait_ns`,
+  and ``log_backpressure_wait_ns`` in the summary). No record is ever dropped.
+* ``backpressure=False`` (real time): whole batches are dropped, counted, and reported by a
+  ``log_overflow`` event as soon as there is room again; the summary's ``dropped_records`` says
+  how many, and :func:`dob_hil.log.check.check_sequences` finds the gaps.
+
+Threads: the thread that made the writer owns it (the control thread). Records from any other
+thread (the embedded real-time drive's timer thread writes ground truth) go to a lock-free queue
+(``collections.deque``) that the owner moves into its batch at the next hand-over, so no batch is
+ever shared between threads. Each channel must be written by one thread only (events: any).
+
+A writer-process failure (a full disk, a file size limit) is raised as :class:`LogWriteError` on
+the owner thread at the next hand-over, with how many records were lost.
+
+``path`` equal to ``os.devnull`` runs without a writer process and without a file: the records are
+packed (so a run costs what a logged run costs on the control thread) and discarded.
 """
 
 from __future__ import annotations
@@ -21,6 +36,7 @@ import select
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -50,27 +66,38 @@ from dob_hil.log.schemas import (
     CH_SAMPLE,
     CH_TRUTH,
     EVENT_LEVELS,
-    PIPE_HEADER,
+    MESSAGE_HEADER,
+    OP_MESSAGE,
+    TOPIC_CAN,
+    TOPIC_CAN_FD,
+    TOPIC_EVENT,
+    TOPIC_SAMPLE,
+    TOPIC_TRUTH,
     LogLayout,
-    body_size,
     can_fields,
+    encode_event_cdr,
+    record_length,
     record_struct,
     sample_fields,
     truth_fields,
 )
 
-DEFAULT_CHUNK_SIZE_BYTES: Final = 32 * 1024
-DEFAULT_CHUNK_INTERVAL_NS: Final = 40_000_000
+DEFAULT_CHUNK_SIZE_BYTES: Final = 256 * 1024
+DEFAULT_CHUNK_INTERVAL_NS: Final = 25_000_000
 DEFAULT_MAX_BACKLOG_BYTES: Final = 64 * 1024 * 1024
 # The control thread hands batches over in flush() (after the command is sent): about one sample
-# in 130 pays for the pipe write (10-15 us), so the p99 cost per sample stays that of packing.
-# batch_bytes is only a safety valve for a caller that never flushes. Worst loss at SIGKILL of
-# the whole process group: the unflushed batch (<= 40 ms) plus the open chunk (<= 40 ms).
+# in 70 pays for the pipe write (10-15 us), so the p99 cost per sample stays that of packing.
+# batch_bytes is only a safety valve for a caller that never flushes. The writer's lag is bounded
+# by age: a batch is handed over once it is flush_interval_ns old, and the writer process finishes
+# a chunk once it has been open chunk_interval_ns.
 DEFAULT_BATCH_BYTES: Final = 256 * 1024
 DEFAULT_FLUSH_BYTES: Final = 48 * 1024
-DEFAULT_FLUSH_INTERVAL_NS: Final = 40_000_000
+DEFAULT_FLUSH_INTERVAL_NS: Final = 20_000_000
+DEFAULT_STALL_TIMEOUT_S: Final = 60.0
 PIPE_CAPACITY_BYTES: Final = 1 << 20
 _MEDIA_TYPES: Final = {".json": "application/json", ".toml": "application/toml", ".txt": "text/plain"}
+_U32: Final = 0xFFFFFFFF
+_LOG_TIME = struct.Struct("<Q")
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +111,7 @@ class LogStats:
     backlog_high_water_bytes: int
     pipe_writes: int
     written_records: dict[str, int] | None  # per kind, from the writer process at close
+    backpressure_wait_ns: int = 0  # time the owner thread waited for the writer (backpressure)
 
 
 def _package_root() -> str:
@@ -98,7 +126,8 @@ class LogWriter:
     "config.toml") to its bytes. A chunk is finished when it holds ``chunk_size_bytes`` or has
     been open ``chunk_interval_ns``; the batch goes to the process when :meth:`flush` finds it
     larger than ``flush_bytes`` or older than ``flush_interval_ns``, and always when it reaches
-    ``batch_bytes``.
+    ``batch_bytes``. ``backpressure``: wait for the writer rather than drop (module docstring);
+    a writer process that takes nothing for ``stall_timeout_s`` while the loop waits is a failure.
     """
 
     def __init__(
@@ -115,6 +144,8 @@ class LogWriter:
         batch_bytes: int = DEFAULT_BATCH_BYTES,
         flush_bytes: int = DEFAULT_FLUSH_BYTES,
         flush_interval_ns: int = DEFAULT_FLUSH_INTERVAL_NS,
+        backpressure: bool = True,
+        stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
         startup_timeout_s: float = 20.0,
     ) -> None:
         self.path = Path(path)
@@ -123,18 +154,30 @@ class LogWriter:
             raise LogWriteError(f"log compression: expected 'zstd', 'lz4' or 'none', got {compression!r}")
         if chunk_size_bytes < 1024:
             raise LogWriteError(f"log chunk_size_bytes: expected >= 1024, got {chunk_size_bytes}")
-        self._check_path()
+        self.null = str(self.path) == os.devnull
+        if not self.null:
+            self._check_path()
         self._sample_fields = sample_fields(layout)
         self._truth_fields = truth_fields(layout)
         self._pack_sample = record_struct(self._sample_fields).pack
         self._pack_can = record_struct(can_fields(CAN_DATA_BYTES)).pack
         self._pack_can_fd = record_struct(can_fields(CAN_FD_DATA_BYTES)).pack
         self._pack_truth = record_struct(self._truth_fields).pack
-        self._sample_len = 4 + body_size(self._sample_fields)
-        self._can_len = 4 + body_size(can_fields(CAN_DATA_BYTES))
-        self._can_fd_len = 4 + body_size(can_fields(CAN_FD_DATA_BYTES))
-        self._truth_len = 4 + body_size(self._truth_fields)
+        self._sample_len = record_length(self._sample_fields)
+        self._can_len = record_length(can_fields(CAN_DATA_BYTES))
+        self._can_fd_len = record_length(can_fields(CAN_FD_DATA_BYTES))
+        self._truth_len = record_length(self._truth_fields)
+        # next MCAP sequence number per channel (each channel is written by one thread; events
+        # from any thread take the lock)
+        self._seq_sample = 0
+        self._seq_can = 0
+        self._seq_can_fd = 0
+        self._seq_truth = 0
+        self._seq_event = 0
+        self._event_lock = threading.Lock()
 
+        self._owner = threading.get_ident()
+        self._foreign: collections.deque[bytes] = collections.deque()
         self._batch = bytearray()
         self._batch_records = 0
         self._batch_bytes = batch_bytes
@@ -145,6 +188,9 @@ class LogWriter:
         self._backlog_head = 0  # bytes of backlog[0] already written
         self._backlog_bytes = 0
         self._max_backlog = max_backlog_bytes
+        self._backpressure = backpressure
+        self._stall_timeout_ns = int(stall_timeout_s * 1e9)
+        self._wait_ns = 0
         self._high_water = 0
         self._enqueued_records = 0
         self._enqueued_bytes = 0
@@ -155,6 +201,12 @@ class LogWriter:
         self._written_records: dict[str, int] | None = None
         self._failure: LogWriteError | None = None
         self._closed = False
+        self._status_buf = bytearray()
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._fd = -1
+        self._status_fd = -1
+        if self.null:
+            return
 
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (_package_root(), env.get("PYTHONPATH", "")) if p)
@@ -169,7 +221,6 @@ class LogWriter:
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._fd = self._proc.stdin.fileno()
         self._status_fd = self._proc.stdout.fileno()
-        self._status_buf = bytearray()
         with contextlib.suppress(OSError):  # a larger pipe absorbs the writer's chunk stalls
             fcntl.fcntl(self._fd, fcntl.F_SETPIPE_SZ, PIPE_CAPACITY_BYTES)
         try:
@@ -292,15 +343,23 @@ class LogWriter:
                 if status == wanted:
                     return obj
                 if status == pipe.STATUS_ERROR:
+                    if self._proc is not None and self._fd >= 0 and wanted != pipe.STATUS_READY:
+                        self._fail("", obj)
+                        assert self._failure is not None
+                        raise self._failure
                     raise LogWriteError(f"log file {self.path}: {obj.get('message')}")
                 if status == "eof":
-                    detail = "; ".join(text[-5:]) or f"exit status {self._proc.poll()}"
+                    detail = (
+                        "; ".join(text[-5:]) or f"exit status {self._proc.poll() if self._proc else None}"
+                    )
                     raise LogWriteError(
                         f"log file {self.path}: the writer process ended unexpectedly: {detail}"
                     )
                 text.append(str(obj.get("message", obj)))
 
     def _close_pipe(self) -> None:
+        if self._proc is None:
+            return
         stdin = self._proc.stdin
         if stdin is not None and not stdin.closed:
             with contextlib.suppress(OSError):
@@ -308,6 +367,8 @@ class LogWriter:
                 stdin.close()
 
     def _abort(self) -> None:
+        if self._proc is None:
+            return
         self._close_pipe()
         try:
             self._proc.wait(timeout=5.0)
@@ -318,6 +379,16 @@ class LogWriter:
         self._proc.stdout.close()
 
     # ------------------------------------------------------------------ records (control thread)
+    def _append(self, record: bytes) -> None:
+        """Add one record to the owner's batch, or to the queue of records from other threads."""
+        if threading.get_ident() != self._owner:
+            self._foreign.append(record)
+            return
+        self._batch += record
+        self._batch_records += 1
+        if len(self._batch) >= self._batch_bytes:
+            self._push()
+
     def sample(
         self,
         time_ns: int,
@@ -340,9 +411,10 @@ class LogWriter:
         flags: int,
     ) -> None:
         """One control period (``/dob_hil/sample``, log time ``time_ns``)."""
+        n = self._seq_sample
         try:
-            self._batch += self._pack_sample(
-                CH_SAMPLE, time_ns, self._sample_len, CDR_HEADER_U32,
+            record = self._pack_sample(
+                OP_MESSAGE, self._sample_len, CH_SAMPLE, n & _U32, time_ns, time_ns, CDR_HEADER_U32,
                 time_ns, rx_time_ns, tx_time_ns, lateness_ns,
                 *counts, *position, *x_ref, *x_hat, *x_bar, *u_fb, *u_dist, *u_cmd_A, *u_applied_A,
                 seq, compute_ns, *dac_counts, feedback_seq, flags,
@@ -353,9 +425,8 @@ class LogWriter:
                 u_fb, u_dist, u_cmd_A, u_applied_A, seq, compute_ns, dac_counts, feedback_seq, flags,
             )  # fmt: skip
             raise self._diagnose("sample", self._sample_fields, values, exc) from exc
-        self._batch_records += 1
-        if len(self._batch) >= self._batch_bytes:
-            self._push()
+        self._seq_sample = n + 1
+        self._append(record)
 
     def frame(self, msg: can.Message, is_rx: bool) -> None:
         """One raw CAN frame, received or sent (``/dob_hil/can``, or ``/dob_hil/can_fd`` above 8 bytes).
@@ -384,24 +455,25 @@ class LogWriter:
         direction = CAN_RX if is_rx else CAN_TX
         try:
             if len(data) <= CAN_DATA_BYTES:
+                n = self._seq_can
                 record = self._pack_can(
-                    CH_CAN, timestamp_ns, self._can_len, CDR_HEADER_U32,
-                    timestamp_ns, arbitration_id, direction, dlc, flags, data,
+                    OP_MESSAGE, self._can_len, CH_CAN, n & _U32, timestamp_ns, timestamp_ns,
+                    CDR_HEADER_U32, timestamp_ns, arbitration_id, direction, dlc, flags, data,
                 )  # fmt: skip
+                self._seq_can = n + 1
             else:
                 if len(data) > CAN_FD_DATA_BYTES:
                     raise LogWriteError(f"CAN frame 0x{arbitration_id:x}: {len(data)} data bytes, at most 64")
+                n = self._seq_can_fd
                 record = self._pack_can_fd(
-                    CH_CAN_FD, timestamp_ns, self._can_fd_len, CDR_HEADER_U32,
-                    timestamp_ns, arbitration_id, direction, dlc, flags, data,
+                    OP_MESSAGE, self._can_fd_len, CH_CAN_FD, n & _U32, timestamp_ns, timestamp_ns,
+                    CDR_HEADER_U32, timestamp_ns, arbitration_id, direction, dlc, flags, data,
                 )  # fmt: skip
+                self._seq_can_fd = n + 1
         except struct.error as exc:
             values = (timestamp_ns, arbitration_id, direction, dlc, flags, data)
             raise self._diagnose("frame", can_fields(CAN_FD_DATA_BYTES), values, exc) from exc
-        self._batch += record
-        self._batch_records += 1
-        if len(self._batch) >= self._batch_bytes:
-            self._push()
+        self._append(record)
 
     def truth(
         self,
@@ -412,43 +484,40 @@ class LogWriter:
         period_index: int,
         drive_state: int,
     ) -> None:
-        """The simulated drive's ground truth for one period (``/dob_hil/truth``)."""
+        """The simulated drive's ground truth for one period (``/dob_hil/truth``); any one thread."""
+        n = self._seq_truth
         try:
-            self._batch += self._pack_truth(
-                CH_TRUTH, time_ns, self._truth_len, CDR_HEADER_U32,
+            record = self._pack_truth(
+                OP_MESSAGE, self._truth_len, CH_TRUTH, n & _U32, time_ns, time_ns, CDR_HEADER_U32,
                 time_ns, *state, *disturbance_A, *applied_current_A, period_index, drive_state,
             )  # fmt: skip
         except struct.error as exc:
             values = (time_ns, state, disturbance_A, applied_current_A, period_index, drive_state)
             raise self._diagnose("truth", self._truth_fields, values, exc) from exc
-        self._batch_records += 1
-        if len(self._batch) >= self._batch_bytes:
-            self._push()
+        self._seq_truth = n + 1
+        self._append(record)
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
     ) -> None:
-        """A state change, fault, overrun or warning (``/dob_hil/event``, JSON)."""
+        """A state change, fault, overrun or warning (``/dob_hil/event``); from any thread."""
         if level not in EVENT_LEVELS:
             raise LogWriteError(f"event level: expected one of {', '.join(EVENT_LEVELS)}, got {level!r}")
-        self._batch += self._event_record(time_ns, level, kind, message, data)
-        self._batch_records += 1
-        if len(self._batch) >= self._batch_bytes:
-            self._push()
+        self._append(self._event_record(time_ns, level, kind, message, data))
 
-    @staticmethod
     def _event_record(
-        time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None
+        self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None
     ) -> bytes:
-        obj = {
-            "time_ns": int(time_ns),
-            "level": level,
-            "kind": kind,
-            "message": message,
-            "data": dict(data or {}),
-        }
-        payload = json.dumps(obj, default=str).encode()
-        return PIPE_HEADER.pack(CH_EVENT, int(time_ns), len(payload)) + payload
+        payload = encode_event_cdr(
+            int(time_ns), level, kind, message, json.dumps(dict(data or {}), default=str)
+        )
+        with self._event_lock:
+            n = self._seq_event
+            self._seq_event = n + 1
+        head = MESSAGE_HEADER.pack(
+            OP_MESSAGE, 22 + len(payload), CH_EVENT, n & _U32, int(time_ns), int(time_ns)
+        )
+        return head + payload
 
     @staticmethod
     def _diagnose(
@@ -481,12 +550,13 @@ class LogWriter:
 
     # ------------------------------------------------------------------ hand-over
     def flush(self, force: bool = False) -> None:
-        """Hand the batch to the writer process if it is due; never blocks.
+        """Hand the batch to the writer process if it is due (owner thread only).
 
         Due: ``force``, or the batch holds ``flush_bytes``, or ``flush_interval_ns`` passed since
-        the last hand-over. Raises :class:`LogWriteError` once the writer process has failed.
+        the last hand-over. Never blocks, except under backpressure with a full backlog. Raises
+        :class:`LogWriteError` once the writer process has failed.
         """
-        if self._batch and (
+        if (self._batch or self._foreign) and (
             force
             or len(self._batch) >= self._flush_bytes
             or time.monotonic_ns() - self._last_push_ns >= self._flush_interval_ns
@@ -497,25 +567,50 @@ class LogWriter:
         if self._failure is not None:
             raise self._failure
 
+    def _take_foreign(self) -> None:
+        """Move the records other threads queued into the owner's batch."""
+        foreign = self._foreign
+        while foreign:
+            self._batch += foreign.popleft()
+            self._batch_records += 1
+
     def _push(self) -> None:
-        """Move the batch to the backlog (or drop it, counted, if the backlog is full) and drain."""
+        """Move the batch to the backlog (waiting, or dropping counted, if the backlog is full) and drain."""
         self._last_push_ns = time.monotonic_ns()
+        if self._foreign:
+            self._take_foreign()
         batch, records = self._batch, self._batch_records
         self._batch = bytearray()
         self._batch_records = 0
+        if not batch:
+            return
         if self._failure is not None or self._closed:
+            self._dropped_records += records
+            return
+        if self.null:
+            self._enqueued_records += records
+            self._enqueued_bytes += len(batch)
+            return
+        if self._poll_failed():
             self._dropped_records += records
             return
         if self._backlog and self._backlog_bytes + len(batch) > self._max_backlog:
             self._drain()
-        if self._backlog_bytes + len(batch) > self._max_backlog:
-            if self._pending_dropped == 0:
-                self._first_dropped_ns = PIPE_HEADER.unpack_from(batch, 0)[1]
-            self._pending_dropped += records
-            self._dropped_records += records
-            return
+        # a batch larger than the whole backlog bound is taken when the backlog is empty
+        if self._backlog_bytes and self._backlog_bytes + len(batch) > self._max_backlog:
+            if self._backpressure:
+                self._wait_for_room(len(batch))
+                if self._poll_failed():
+                    self._dropped_records += records
+                    return
+            else:
+                if self._pending_dropped == 0:
+                    self._first_dropped_ns = _LOG_TIME.unpack_from(batch, 15)[0]
+                self._pending_dropped += records
+                self._dropped_records += records
+                return
         if self._pending_dropped:
-            time_ns = PIPE_HEADER.unpack_from(batch, 0)[1]
+            time_ns = _LOG_TIME.unpack_from(batch, 15)[0]
             count = self._pending_dropped
             data = {"dropped_records": count, "first_dropped_time_ns": self._first_dropped_ns}
             text = f"log backlog full ({self._max_backlog} bytes): {count} records dropped"
@@ -528,6 +623,24 @@ class LogWriter:
         self._backlog_bytes += len(batch)
         self._high_water = max(self._high_water, self._backlog_bytes)
         self._drain()
+
+    def _wait_for_room(self, size: int) -> None:
+        """Backpressure: block until the backlog takes ``size`` more bytes (time counted)."""
+        t0 = last_progress = time.monotonic_ns()
+        # a batch larger than the whole backlog bound goes once the backlog is empty
+        while (
+            self._backlog_bytes and self._backlog_bytes + size > self._max_backlog and self._failure is None
+        ):
+            select.select([self._status_fd], [self._fd], [], 1.0)
+            before = self._backlog_bytes
+            self._drain()
+            self._poll_status()
+            now = time.monotonic_ns()
+            if self._backlog_bytes < before:
+                last_progress = now
+            elif now - last_progress > self._stall_timeout_ns:
+                self._fail(f"the writer process took nothing for {self._stall_timeout_ns / 1e9:g} s")
+        self._wait_ns += time.monotonic_ns() - t0
 
     def _drain(self) -> None:
         """Write as much of the backlog as the pipe takes now."""
@@ -549,17 +662,57 @@ class LogWriter:
         except OSError as exc:  # EPIPE: the writer process has ended
             self._fail(f"the writer process stopped taking records ({exc})")
 
-    def _fail(self, what: str) -> None:
+    def _poll_failed(self) -> bool:
+        """Whether the writer process has failed (reading its reports without blocking)."""
+        self._poll_status()
+        return self._failure is not None
+
+    def _poll_status(self) -> None:
+        """Read what the writer process reported, without blocking; an error status fails the log."""
+        if self._failure is not None or self._status_fd < 0:
+            return
+        ready, _, _ = select.select([self._status_fd], [], [], 0)
+        if not ready:
+            return
+        for obj in self._read_status(0.5):
+            if obj.get("status") in (pipe.STATUS_ERROR, "eof"):
+                self._fail("", obj)
+                return
+
+    def _fail(self, what: str, report: dict[str, Any] | None = None) -> None:
         message = what
-        for obj in self._read_status(2.0):
-            if obj.get("status") in (pipe.STATUS_ERROR, "text"):
-                message = str(obj.get("message"))
-                break
-        self._failure = LogWriteError(f"log file {self.path}: {message}")
-        self._backlog.clear()  # enqueued, never written: written_records (None) tells
+        if report is None or report.get("status") != pipe.STATUS_ERROR:
+            for obj in self._read_status(2.0):
+                if obj.get("status") in (pipe.STATUS_ERROR, "text"):
+                    report = obj
+                    break
+        if report is not None and report.get("status") in (pipe.STATUS_ERROR, "text"):
+            message = str(report.get("message"))
+        if not message:
+            message = "the writer process ended unexpectedly"
+        written = report.get("written") if report is not None else None
+        handed = self._enqueued_records + self._batch_records
+        if isinstance(written, dict):
+            in_file = sum(int(v) for k, v in written.items() if str(k).endswith("_written"))
+            self._written_records = {str(k): int(v) for k, v in written.items()}
+            lost = f"{handed - in_file} of {handed} records so far lost (the file holds {in_file})"
+        else:
+            lost = f"the records after the last finished chunk lost ({handed} handed over so far)"
+        self._failure = LogWriteError(f"log file {self.path}: {message}; {lost}")
+        self._backlog.clear()  # enqueued, never written
         self._backlog_bytes = 0
 
     # ------------------------------------------------------------------ close
+    def _records_made(self) -> dict[str, int]:
+        """Per topic, how many records were made (sequence numbers given out), dropped or not."""
+        return {
+            TOPIC_SAMPLE: self._seq_sample,
+            TOPIC_CAN: self._seq_can,
+            TOPIC_CAN_FD: self._seq_can_fd,
+            TOPIC_TRUTH: self._seq_truth,
+            TOPIC_EVENT: self._seq_event,
+        }
+
     @property
     def stats(self) -> LogStats:
         return LogStats(
@@ -570,6 +723,7 @@ class LogWriter:
             backlog_high_water_bytes=self._high_water,
             pipe_writes=self._pipe_writes,
             written_records=self._written_records,
+            backpressure_wait_ns=self._wait_ns,
         )
 
     @property
@@ -588,11 +742,16 @@ class LogWriter:
             if self._failure is None:
                 self._push()
             self._closed = True
-            if self._failure is None:
+            if self.null:
+                self._written_records = {}
+            elif self._failure is None:
                 full_summary: dict[str, Any] = dict(summary or {})
                 full_summary.setdefault("exit_reason", "closed")
                 full_summary.setdefault("dropped_records", self._dropped_records)
                 full_summary.setdefault("log_backlog_high_water_bytes", self._high_water)
+                full_summary.setdefault("log_backpressure_wait_ns", self._wait_ns)
+                full_summary.setdefault("log_backpressure", self._backpressure)
+                full_summary.setdefault("records_made", self._records_made())
                 if self._pending_dropped:
                     full_summary.setdefault("dropped_records_unreported", self._pending_dropped)
                 os.set_blocking(self._fd, True)

@@ -1,15 +1,16 @@
-"""The log's writer process: reads packed records on stdin, writes the MCAP file.
+"""The log's writer process: reads the record stream on stdin, writes the MCAP file in bulk.
 
 Run by :class:`~dob_hil.log.writer.LogWriter` as ``python -m dob_hil.log.writer_process``; the
-record stream is described in :mod:`dob_hil.log.pipe`. All MCAP work (records, chunking, zstd)
-happens here, so the control process only packs bytes.
+record stream is described in :mod:`dob_hil.log.pipe`. The Message records arrive ready-made, so
+this process only finds their boundaries (one header read per record) and hands whole runs of
+them to :class:`~dob_hil.log.chunked_file.ChunkedFile`, which compresses and indexes each chunk.
 
-Crash safety: the file is written through an unbuffered stream, and a chunk is finished (and so
-reaches the kernel) when it holds ``chunk_size_bytes`` or has been open ``chunk_interval_ns``,
-whichever comes first; a SIGKILL of both processes loses at most the open chunk and what was
-still in the pipe. On end of input without a ``close`` record (the parent vanished) or on
-SIGTERM the file is finished with a summary saying so. SIGINT is ignored: the parent handles
-Ctrl-C and closes the log itself.
+Crash safety: a chunk is finished (and so reaches the kernel) when it holds ``chunk_size_bytes``
+or has been open ``chunk_interval_ns``, whichever comes first; a SIGKILL of both processes loses
+at most the open chunk and what was still in the pipe. On end of input without a ``close`` record
+(the parent vanished) the file is finished with a summary saying so. SIGINT and SIGTERM are
+ignored: the parent handles them and closes the log itself. SIGXFSZ is ignored, so a file size
+limit is an error (EFBIG) reported to the parent like a full disk.
 """
 
 from __future__ import annotations
@@ -21,26 +22,23 @@ import select
 import signal
 import sys
 import time
-from collections import Counter
 from typing import Any, BinaryIO
 
-from mcap.writer import CompressionType, Writer
-
 from dob_hil.log import pipe
+from dob_hil.log.chunked_file import ChunkedFile
 from dob_hil.log.schemas import (
     CH_CAN,
     CH_CAN_FD,
     CH_EVENT,
     CH_SAMPLE,
     CH_TRUTH,
-    MESSAGE_RECORD_OVERHEAD,
-    PIPE_HEADER,
+    OP_MESSAGE,
     LogLayout,
     channel_specs,
 )
 
 _READ_BYTES = 1 << 20
-_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+_HEAD = pipe.RECORD_HEAD
 _WRITTEN_KEYS = {
     CH_SAMPLE: "samples_written",
     CH_CAN: "frames_written",
@@ -50,89 +48,44 @@ _WRITTEN_KEYS = {
 }
 
 
-class DirectStream:
-    """A write-only file object without userspace buffering: every ``write`` reaches the kernel.
-
-    mcap's Writer wraps raw files in a BufferedWriter; this object is not a RawIOBase, so it is
-    used as is.
-    """
-
-    def __init__(self, fd: int) -> None:
-        self._fd = fd
-        self._pos = 0
-
-    def write(self, data: bytes | bytearray | memoryview) -> int:
-        view = memoryview(data)
-        total = len(view)
-        while view:
-            written = os.write(self._fd, view)
-            view = view[written:]
-        self._pos += total
-        return total
-
-    def tell(self) -> int:
-        return self._pos
-
-    def flush(self) -> None:
-        pass
-
-    def close(self) -> None:
-        os.close(self._fd)
-
-
 class LogFile:
     """The MCAP file and its chunking policy."""
 
     def __init__(self, config: dict[str, Any]) -> None:
         self.path = str(config["path"])
-        self.layout = LogLayout(**config["layout"])
+        layout = LogLayout(**config["layout"])
         self.chunk_size_bytes = int(config["chunk_size_bytes"])
         self.chunk_interval_ns = int(config["chunk_interval_ns"])
-        compression = _COMPRESSION[str(config["compression"])]
-        fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
-        self.stream = DirectStream(fd)
-        # Chunks are finished here (chunk_bytes), never by the library's size check.
-        self.writer = Writer(self.stream, chunk_size=1 << 62, compression=compression)  # type: ignore[arg-type]
-        self.writer.start(profile="", library=str(config["library"]))
-        self.sequence: Counter[int] = Counter()
-        self.chunk_bytes = 0
+        self.file = ChunkedFile(
+            self.path, str(config["library"]), channel_specs(layout), str(config["compression"])
+        )
         self.chunk_opened_ns = 0
         self.chunks = 0
-        self.finished = False
-        for spec in channel_specs(self.layout):
-            schema_id = self.writer.register_schema(
-                spec.schema_name, spec.schema_encoding, spec.schema_data()
-            )
-            channel_id = self.writer.register_channel(spec.topic, spec.message_encoding, schema_id)
-            if channel_id != spec.key:
-                raise RuntimeError(f"channel {spec.topic} got id {channel_id}, expected {spec.key}")
 
-    def message(self, channel: int, log_time_ns: int, payload: bytes) -> None:
-        if channel not in _WRITTEN_KEYS:
-            raise ValueError(f"record for unknown channel {channel}")
-        seq = self.sequence[channel]
-        self.sequence[channel] = seq + 1
-        if self.chunk_bytes == 0:
+    def messages(self, buf: bytearray, start: int, end: int, offsets: list[int]) -> None:
+        if self.file.chunk_bytes == 0:
             self.chunk_opened_ns = time.monotonic_ns()
-        self.writer.add_message(channel, log_time_ns, payload, log_time_ns, seq & 0xFFFFFFFF)
-        self.chunk_bytes += MESSAGE_RECORD_OVERHEAD + len(payload)
-        if self.chunk_bytes >= self.chunk_size_bytes:
+        self.file.add_messages(buf, start, end, offsets)
+        if self.file.chunk_bytes >= self.chunk_size_bytes:
             self.finish_chunk()
 
+    def room(self) -> int:
+        """Bytes of records the open chunk takes before it is finished (at least 1)."""
+        return max(1, self.chunk_size_bytes - self.file.chunk_bytes)
+
     def finish_chunk(self) -> None:
-        if self.chunk_bytes:
-            self.writer.flush()  # type: ignore[no-untyped-call]  # finishes the chunk and writes it with its message indexes
-            self.chunk_bytes = 0
+        if self.file.finish_chunk():
             self.chunks += 1
 
     def chunk_deadline_s(self) -> float | None:
         """Seconds until the open chunk must be finished, None if no chunk is open."""
-        if self.chunk_bytes == 0:
+        if self.file.chunk_bytes == 0:
             return None
         return max(0.0, (self.chunk_opened_ns + self.chunk_interval_ns - time.monotonic_ns()) * 1e-9)
 
     def written(self) -> dict[str, int]:
-        counts = {key: self.sequence[ch] for ch, key in _WRITTEN_KEYS.items()}
+        """Records per kind in finished chunks (those that reached the file)."""
+        counts = {key: int(self.file.message_counts.get(ch, 0)) for ch, key in _WRITTEN_KEYS.items()}
         counts["chunks"] = self.chunks
         return counts
 
@@ -142,12 +95,13 @@ class LogFile:
         data = {key: _text(value) for key, value in summary.items()}
         for key, value in written.items():
             data.setdefault(key, str(value))
-        self.writer.add_metadata("summary", data)
-        self.writer.finish()  # type: ignore[no-untyped-call]
-        os.fsync(self.stream._fd)
-        self.stream.close()
-        self.finished = True
+        self.file.add_metadata("summary", data)
+        self.file.finish()
         return written
+
+    @property
+    def finished(self) -> bool:
+        return self.file.finished
 
 
 def _text(value: object) -> str:
@@ -164,13 +118,43 @@ class _Status:
 
 
 def _detach_from_control_loop() -> None:
-    """Run as an ordinary, lower-priority process on every CPU, whatever the parent set."""
+    """Run as an ordinary process on every CPU, whatever the parent set (SCHED_FIFO, affinity)."""
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
-    with contextlib.suppress(OSError):
-        os.nice(5)
+
+
+def _control(log: LogFile | None, payload: bytes, status: _Status) -> tuple[LogFile | None, bool]:
+    """Apply one control record; returns the log file and whether the log is closed."""
+    obj, blob = pipe.split_control(payload)
+    op = obj["op"]
+    if op == pipe.OP_OPEN:
+        try:
+            return LogFile(obj), False
+        except OSError as exc:
+            raise RuntimeError(f"log file {obj.get('path')}: cannot open for writing: {exc}") from exc
+    if log is None:
+        raise RuntimeError(f"control record {op!r} before the open record")
+    if op == pipe.OP_ATTACHMENT:
+        log.file.add_attachment(
+            int(obj["create_time"]),
+            int(obj["log_time"]),
+            str(obj["name"]),
+            str(obj["media_type"]),
+            blob or b"",
+        )
+    elif op == pipe.OP_METADATA:
+        log.file.add_metadata(str(obj["name"]), {str(k): str(v) for k, v in obj["data"].items()})
+    elif op == pipe.OP_SYNC:
+        status.send(status=pipe.STATUS_READY)
+    elif op == pipe.OP_CLOSE:
+        written = log.close(dict(obj["summary"]))
+        status.send(status=pipe.STATUS_CLOSED, written=written)
+        return log, True
+    else:
+        raise RuntimeError(f"unknown control op {op!r}")
+    return log, False
 
 
 def run(fd_in: int, status: _Status) -> int:
@@ -178,6 +162,7 @@ def run(fd_in: int, status: _Status) -> int:
     buf = bytearray()
     pos = 0
     closed = False
+    unpack = _HEAD.unpack_from
     try:
         poller = select.poll()
         poller.register(fd_in, select.POLLIN)
@@ -192,53 +177,44 @@ def run(fd_in: int, status: _Status) -> int:
                         buf += data
                     else:
                         eof = True
-            # parse every complete record
+            # every complete record: runs of Message records go to the chunk in one piece
             end = len(buf)
-            while end - pos >= PIPE_HEADER.size:
-                channel, log_time_ns, length = PIPE_HEADER.unpack_from(buf, pos)
-                start = pos + PIPE_HEADER.size
-                if end - start < length:
+            run_start = pos
+            offsets: list[int] = []
+            room = log.room() if log is not None else 0  # bytes until the open chunk is full
+            while end - pos >= 9:
+                op, length = unpack(buf, pos)
+                stop = pos + 9 + length
+                if stop > end:
                     break
-                payload = bytes(buf[start : start + length])
-                pos = start + length
-                if channel != pipe.CH_CONTROL:
+                if op == OP_MESSAGE:
+                    offsets.append(pos)
+                    pos = stop
+                    if pos - run_start >= room:
+                        if log is None:
+                            raise RuntimeError("data record before the open record")
+                        log.messages(buf, run_start, pos, offsets)  # finishes the chunk
+                        offsets = []
+                        run_start = pos
+                        room = log.room()
+                    continue
+                if offsets:
                     if log is None:
                         raise RuntimeError("data record before the open record")
-                    log.message(channel, log_time_ns, payload)
-                    continue
-                obj, blob = pipe.split_control(payload)
-                op = obj["op"]
-                if op == pipe.OP_OPEN:
-                    try:
-                        log = LogFile(obj)
-                    except OSError as exc:
-                        raise RuntimeError(
-                            f"log file {obj.get('path')}: cannot open for writing: {exc}"
-                        ) from exc
-                elif log is None:
-                    raise RuntimeError(f"control record {op!r} before the open record")
-                elif op == pipe.OP_ATTACHMENT:
-                    log.writer.add_attachment(
-                        int(obj["create_time"]),
-                        int(obj["log_time"]),
-                        str(obj["name"]),
-                        str(obj["media_type"]),
-                        blob or b"",
-                    )
-                elif op == pipe.OP_METADATA:
-                    log.writer.add_metadata(
-                        str(obj["name"]), {str(k): str(v) for k, v in obj["data"].items()}
-                    )
-                elif op == pipe.OP_SYNC:
-                    status.send(status=pipe.STATUS_READY)
-                elif op == pipe.OP_CLOSE:
-                    written = log.close(dict(obj["summary"]))
-                    status.send(status=pipe.STATUS_CLOSED, written=written)
-                    closed = True
+                    log.messages(buf, run_start, pos, offsets)
+                    offsets = []
+                if op != pipe.OP_CONTROL:
+                    raise RuntimeError(f"unexpected record opcode 0x{op:02x} on the log pipe")
+                log, closed = _control(log, bytes(buf[pos + 9 : stop]), status)
+                pos = run_start = stop
+                room = log.room() if log is not None else 0
+                if closed:
                     break
-                else:
-                    raise RuntimeError(f"unknown control op {op!r}")
-            if pos > _READ_BYTES:
+            if offsets and not closed:
+                if log is None:
+                    raise RuntimeError("data record before the open record")
+                log.messages(buf, run_start, pos, offsets)
+            if pos > _READ_BYTES or pos == len(buf):
                 del buf[:pos]
                 pos = 0
             if log is not None and not closed:
@@ -249,19 +225,24 @@ def run(fd_in: int, status: _Status) -> int:
                 if log is None:
                     raise RuntimeError("the log pipe closed before the open record")
                 summary = {"exit_reason": "parent vanished: the log pipe closed before close()"}
-                if end - pos:
-                    summary["incomplete_record_bytes"] = str(end - pos)
+                if len(buf) - pos:
+                    summary["incomplete_record_bytes"] = str(len(buf) - pos)
                 written = log.close(summary)
                 status.send(status=pipe.STATUS_CLOSED, written=written)
                 closed = True
     except Exception as exc:  # report every failure to the parent, which raises it
         message = f"{type(exc).__name__}: {exc}"
+        written_before = log.written() if log is not None else None
         if log is not None and not log.finished:
             try:  # leave a readable file if the disk still takes it
+                log.file.chunk = bytearray()
+                log.file.offsets = []
                 log.close({"exit_reason": f"log writer error: {message}"})
             except Exception as close_exc:
                 message += f" (and finishing the file failed: {type(close_exc).__name__}: {close_exc})"
-        status.send(status=pipe.STATUS_ERROR, message=message)
+            finally:
+                log.file.close()
+        status.send(status=pipe.STATUS_ERROR, message=message, written=written_before)
         return 1
     return 0
 
@@ -273,6 +254,7 @@ def main() -> int:
     # must go regardless is stopped with SIGKILL.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     _detach_from_control_loop()
     return run(sys.stdin.fileno(), _Status(sys.stdout.buffer))
 

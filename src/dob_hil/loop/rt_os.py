@@ -1,7 +1,7 @@
 """Opt-in OS settings for the real-time loop: SCHED_FIFO, CPU affinity, a frozen GC.
 
 Each is applied where the OS permits and reported otherwise; none is silently skipped. Measured
-on this kind of machine (shared/MEASURED.md): SCHED_FIFO + pinning + gc.freeze() cut the worst
+on this kind of machine (BENCHMARKS.md, real-time rows): SCHED_FIFO + pinning + gc.freeze() cut the worst
 lateness of a 300 us loop by an order of magnitude; gen-2 GC pauses are 6-8 ms.
 """
 

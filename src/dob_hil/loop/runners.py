@@ -35,6 +35,18 @@ from dob_hil.loop.cycle import ControlCycle
 SEQ_MODULO = 256
 
 
+def _fault_message(link: object, seq: int) -> str:
+    """The drive's fault, named by the link where it can (``fault_description``)."""
+    detail = getattr(link, "fault_description", None)
+    return f"the drive reports a fault (feedback seq {seq})" + (f": {detail}" if detail else "")
+
+
+TIMEOUT_HINT = (
+    "; on a busy machine widen --feedback-timeout-periods (drive.feedback_timeout_periods) and the "
+    "drive's watchdog (--watchdog-periods), or give the loop and the drive a CPU each"
+)
+
+
 class LoopLog(Protocol):
     """What the runners write besides samples: events (``time_ns`` None: the run's clock now) and
     the writer's flush (see :class:`dob_hil.loop.timeline.LoopLog`)."""
@@ -108,7 +120,9 @@ def run_lockstep(
         if fb is None:
             missing_run += 1
             if missing_run >= limits.timeout_periods:
-                raise DriveFault(f"no feedback from the drive for {missing_run} periods (host timeout)")
+                raise DriveFault(
+                    f"no feedback from the drive for {missing_run} periods (host timeout){TIMEOUT_HINT}"
+                )
             answer = 0 if expected_seq is None else expected_seq
             on_missing(k, time_ns, answer, 0, False)
         else:
@@ -116,7 +130,7 @@ def run_lockstep(
                 _log_gap(log, k, missing_run)
                 missing_run = 0
             if fb.fault:
-                raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+                raise DriveFault(_fault_message(link, fb.seq))
             on_feedback(k, time_ns, fb, 0, False)
             expected_seq = fb.seq
         if expected_seq is not None:
@@ -212,11 +226,11 @@ def run_realtime(
                 if clock_ns() - last_rx_ns >= timeout_ns:
                     raise DriveFault(
                         f"no feedback from the drive for {limits.timeout_periods} periods "
-                        f"({timeout_ns / 1e6:g} ms: host timeout)"
+                        f"({timeout_ns / 1e6:g} ms: host timeout){TIMEOUT_HINT}"
                     )
                 continue
         if fb.fault:
-            raise DriveFault(f"the drive reports a fault (feedback seq {fb.seq})")
+            raise DriveFault(_fault_message(link, fb.seq))
         last_rx_ns = fb.rx_time_ns
         overrun = False
         if fb.rx_time_ns - (anchor_ns + k * period_ns) > half_period_ns:

@@ -28,6 +28,7 @@ from dob_hil.config import Config
 from dob_hil.control.reference import make_reference
 from dob_hil.control.step import Gains, compile_step
 from dob_hil.design import Design, build_design
+from dob_hil.design.tracking import tracking_map
 from dob_hil.errors import DobHilError, DriveFault
 from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
@@ -36,6 +37,7 @@ from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
+from dob_hil.loop.host_clocked import run_host_clocked_lockstep, run_host_clocked_realtime
 from dob_hil.loop.inproc_bus import BUS_IMPLS, bus_pair
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
@@ -214,9 +216,12 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     check_encoder_resolution(config, duration_s)
     period_ns = config.plant.period_ns
     n_samples = max(1, round(duration_s * 1e9 / period_ns))
-    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist)
+    tracking = tracking_map(design)  # x_ref = Nx r + Nv r', u_ref = Kff x_ref (any plant)
+    gains = Gains(design.Phi, design.Gam, design.C, design.Lc, design.Kc, design.Kdist, Kff=tracking.Kff)
     step = compile_step(gains, dob_enabled)
-    reference = make_reference(config.reference, step.n_states, config.plant.period_s)
+    reference = make_reference(
+        config.reference, step.n_states, config.plant.period_s, state_map=(tracking.Nx, tracking.Nv)
+    )
     external_bus = options.interface is not None or options.channel is not None
     mode = "realtime" if (external_bus or options.realtime) else "lockstep"
     log_path = options.log_path or default_log_path(config, dob_enabled)
@@ -252,6 +257,7 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
             layout,
             metadata={"run": run_meta, "versions": versions_metadata()},
             attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
+            backpressure=mode == "lockstep",  # real time drops (counted) rather than wait
         ) as log,
     ):
         return _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
@@ -358,10 +364,19 @@ def _run_with_log(
         if mode == "lockstep":
             assert drive is not None
             link.enable_lockstep(drive.service)
-            exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
+            if profile.clocking is Clocking.HOST:
+                exit_reason = run_host_clocked_lockstep(
+                    cycle,
+                    link,  # type: ignore[arg-type]
+                    drive,
+                    loop_log,
+                    limits,
+                    flag,
+                    progress,
+                )
+            else:
+                exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
         else:
-            if profile.clocking is not Clocking.DRIVE:
-                raise DobHilError(f"the {profile.name} profile has no real-time runner yet")
             if drive is not None:
                 # the embedded drive's threads share this process's GIL with the loop: hand
                 # it over every 100 us instead of 5 ms (timing stays indicative only; a drive
@@ -369,7 +384,17 @@ def _run_with_log(
                 sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
                 drive.start()
             link.enable(int(options.enable_timeout_s * 1e9))
-            exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
+            if profile.clocking is Clocking.HOST:
+                exit_reason = run_host_clocked_realtime(
+                    cycle,
+                    link,  # type: ignore[arg-type]
+                    loop_log,
+                    limits,
+                    flag,
+                    progress=progress,
+                )
+            else:
+                exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
         if envelope.reason is not None and exit_reason == envelope.reason:
             raise SafetyTrip(envelope.reason)
     except SafetyTrip as exc:

@@ -1,0 +1,155 @@
+"""``SimulatedCia402Drive``: the simulated CiA 402 drive on a python-can bus, with either clock.
+
+Lockstep (deterministic; the host's SYNC advances time)::
+
+    drive = SimulatedCia402Drive(bus, config)        # boot-up frame sent now
+    ... host: SDO configuration (call drive.service() meanwhile), NMT start, enable ...
+    ... host sends SYNC ...
+    drive.service()        # integrates one period, samples, sends the TPDOs
+
+Real time (its own receive thread; the SYNC arrivals are its clock)::
+
+    with SimulatedCia402Drive(bus, config, clock="realtime") as drive:
+        ...                # drive.check() re-raises a thread's exception
+
+The drive does not own the bus: :meth:`close` stops the drive, the caller shuts the bus down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from types import TracebackType
+from typing import Literal
+
+import can
+
+from dob_hil.config import Config
+from firmware_sim.cia402.core import Cia402Core, Cia402Stats, TruthSink
+from firmware_sim.cia402.lockstep import Cia402Lockstep
+from firmware_sim.cia402.power import PowerState
+from firmware_sim.cia402.realtime import Cia402Realtime
+
+ClockKind = Literal["lockstep", "realtime"]
+
+
+class SimulatedCia402Drive:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        *,
+        clock: ClockKind = "lockstep",
+        truth_sink: TruthSink | None = None,
+    ) -> None:
+        self.config = config
+        self.clock: ClockKind = clock
+        self._lockstep: Cia402Lockstep | None = None
+        self._realtime: Cia402Realtime | None = None
+        if clock == "lockstep":
+            self._lockstep = Cia402Lockstep(bus, config, truth_sink)
+            self._core, self._lock = self._lockstep.core, self._lockstep.lock
+        elif clock == "realtime":
+            self._realtime = Cia402Realtime(bus, config, truth_sink)
+            self._core, self._lock = self._realtime.core, self._realtime.lock
+        else:
+            raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
+        self._closed = False
+
+    # --- lockstep ------------------------------------------------------------------------------
+    def service(self) -> int:
+        """Lockstep: act on every frame pending on the bus (never blocks); returns how many were read."""
+        return self._need_lockstep("service").service()
+
+    def advance_period(self) -> None:
+        """Lockstep: one period passes without a SYNC (the SYNC-loss watchdog counts it)."""
+        self._need_lockstep("advance_period").advance_period()
+
+    def _need_lockstep(self, what: str) -> Cia402Lockstep:
+        if self._lockstep is None:
+            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
+        return self._lockstep
+
+    # --- real time -----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Real time: boot (boot-up frame) and start the receive thread. Nothing in lockstep."""
+        if self._realtime is not None:
+            self._realtime.start()
+
+    def stop(self) -> None:
+        """Real time: stop the thread; re-raise an exception it hit. Safe to call twice."""
+        if self._realtime is not None:
+            self._realtime.stop()
+
+    def check(self) -> None:
+        if self._realtime is not None:
+            self._realtime.check()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.stop()
+
+    def __enter__(self) -> SimulatedCia402Drive:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        with contextlib.suppress(Exception):
+            self.close()
+
+    # --- read-out ------------------------------------------------------------------------------
+    @property
+    def core(self) -> Cia402Core:
+        """The firmware (tests; in real time, read it under :attr:`lock` or use the properties)."""
+        return self._core
+
+    @property
+    def running(self) -> bool:
+        return self._realtime is not None and self._realtime.running
+
+    @property
+    def state(self) -> PowerState:
+        with self._lock:
+            return self._core.power.state
+
+    @property
+    def nmt_state(self) -> str:
+        with self._lock:
+            return self._core.node.nmt.state
+
+    @property
+    def enabled(self) -> bool:
+        """OPERATION ENABLED: the drive applies the target torque."""
+        return self.state is PowerState.OPERATION_ENABLED
+
+    @property
+    def period_index(self) -> int:
+        with self._lock:
+            return self._core.period_index
+
+    @property
+    def time_ns(self) -> int:
+        with self._lock:
+            return self._core.time_ns
+
+    @property
+    def true_state(self) -> tuple[float, ...]:
+        with self._lock:
+            return self._core.plant.state
+
+    @property
+    def error_code(self) -> int:
+        with self._lock:
+            return self._core.error_code
+
+    @property
+    def stats(self) -> Cia402Stats:
+        with self._lock:
+            return dataclasses.replace(self._core.stats)

@@ -1,0 +1,75 @@
+"""Lockstep clock of the simulated CiA 402 drive: a SYNC advances simulated time by one period.
+
+:meth:`Cia402Lockstep.service` reads the frames pending on the drive's bus end (non-blocking) up
+to and including a SYNC and acts on each in order, in the calling thread: SDO requests are
+answered at once, NMT commands and RPDOs taken, and a SYNC integrates one period (none for the
+first SYNC, which is t = 0), samples and sends the synchronous TPDOs. It is safe to call with
+nothing pending and from a helper thread (a lock serialises callers), so a host whose SDO client
+blocks can keep the drive serviced while it configures it. :meth:`advance_period` lets one
+period pass without a SYNC. TPDO loss (``sim.loss_probability``, seeded) applies; latency and
+jitter need a wall clock and are ignored, as in the native lockstep drive.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import can
+
+from dob_hil.config import Config
+from firmware_sim.cia402.core import Cia402Core, TruthSink
+from firmware_sim.impairments import FeedbackImpairment
+
+
+class Cia402Lockstep:
+    def __init__(self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None) -> None:
+        self.bus = bus
+        self.core = Cia402Core(bus, config, lockstep=True, want_truth=truth_sink is not None)
+        self.truth_sink = truth_sink
+        sim = config.sim
+        self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
+        self.lock = threading.Lock()
+        with self.lock:
+            self.core.power_on()  # the boot-up message goes out now
+
+    def service(self) -> int:
+        """Act on the frames pending on the bus, up to and including a SYNC; returns how many were read.
+
+        Stopping after a SYNC (rather than reading until the queue is empty) saves an empty receive
+        per period; frames sent after the SYNC are handled by the next call, as a real drive
+        handles them in its next cycle.
+        """
+        recv, core = self.bus.recv, self.core
+        n = 0
+        with self.lock:
+            while True:
+                msg = recv(0.0)
+                if msg is None:
+                    return n
+                n += 1
+                if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+                    core.stats.frames_ignored += 1
+                    continue
+                aid = msg.arbitration_id
+                core.on_frame(aid, bytes(msg.data), core.time_ns)
+                self._flush()
+                if aid == core.sync_cob_id:
+                    return n
+
+    def advance_period(self) -> None:
+        """One period without a SYNC (the SYNC-loss watchdog counts it)."""
+        with self.lock:
+            self.core.advance_period()
+            self._flush()
+
+    def _flush(self) -> None:
+        core = self.core
+        for cob_id, payload in core.take_tpdos():
+            if self.impairment.lost():
+                core.stats.tpdos_lost += 1
+            else:
+                core.network.send_message(cob_id, payload)
+                core.stats.tpdos_sent += 1
+        truth = core.take_truth()
+        if truth is not None and self.truth_sink is not None:
+            self.truth_sink(truth)

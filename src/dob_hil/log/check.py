@@ -1,0 +1,121 @@
+"""Completeness of a log: every channel's MCAP sequence numbers, checked for gaps and duplicates.
+
+The writer numbers each channel's messages 0, 1, 2, ... where the record is made (on the thread
+that logs it, :mod:`dob_hil.log.pipe`), so in a complete log each channel holds every number
+exactly once: a record that never reached the file (dropped under load in real time, lost in a
+crash or to a failed disk) leaves a gap, and a record written twice (two threads handing over the
+same batch) a duplicate. :func:`check_sequences` reads the numbers in bulk (from the message
+indexes, like :func:`dob_hil.log.read_log`) and reports per topic; tests of the loop, the session
+and the log call it on every log they make (:func:`assert_complete`).
+"""
+
+from __future__ import annotations
+
+import json
+import mmap
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dob_hil.errors import LogReadError
+from dob_hil.log.reader import _gather, _Reader
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelSequence:
+    """One channel's sequence numbers: how many messages, which numbers are missing or repeated."""
+
+    topic: str
+    messages: int
+    first: int | None
+    last: int | None
+    missing: int  # numbers below the count made (summary ``records_made``, else last + 1) absent
+    duplicates: int  # messages whose number an earlier message already had
+    first_missing: list[int] = field(default_factory=list)  # up to 10
+    first_duplicates: list[int] = field(default_factory=list)  # up to 10
+
+    @property
+    def complete(self) -> bool:
+        return self.missing == 0 and self.duplicates == 0 and (self.first in (None, 0))
+
+
+def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
+    """Per topic of the log at ``path``: its sequence numbers' gaps and duplicates (module docstring).
+
+    Raises :class:`LogReadError` for a file that is no MCAP log. A damaged file is checked as far
+    as it reads (what is lost shows as missing numbers).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            if f.seek(0, 2) == 0:
+                raise LogReadError(f"{path}: empty file, not an MCAP log")
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except OSError as exc:
+        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    try:
+        reader = _Reader(mm, str(path), None, True)
+        reader._learn_channels()
+        topics = {c.id: c.topic for c in reader.fmap.channels.values()}
+        parts: dict[int, list[np.ndarray]] = {cid: [] for cid in topics}
+        made = _records_made(reader.fmap.metadata.get("summary", {}))
+        for group in reader._groups():
+            table = reader._table(group)
+            seqs = _gather(group.buf, np.dtype("<u4"), table.offsets + 11)
+            for cid in np.unique(table.channels).tolist():
+                parts.setdefault(int(cid), []).append(seqs[table.channels == cid])
+            reader._release(group)
+    finally:
+        mm.close()
+    out = {}
+    for cid, chunks in sorted(parts.items()):
+        topic = topics.get(cid, f"channel {cid}")
+        out[topic] = _summarise(topic, chunks, made.get(topic))
+    return out
+
+
+def _records_made(summary: dict[str, str]) -> dict[str, int]:
+    """The writer's count of records made per topic (its summary), {} if absent or unreadable."""
+    try:
+        made = json.loads(summary.get("records_made", "{}"))
+    except (ValueError, RecursionError):
+        return {}
+    if not isinstance(made, dict):
+        return {}
+    return {str(k): v for k, v in made.items() if isinstance(v, int) and 0 <= v < 1 << 40}
+
+
+def _summarise(topic: str, chunks: list[np.ndarray], made: int | None) -> ChannelSequence:
+    seqs = np.concatenate(chunks).astype(np.int64) if chunks else np.zeros(0, dtype=np.int64)
+    if len(seqs) == 0:
+        return ChannelSequence(topic, 0, None, None, made or 0, 0, list(range(min(made or 0, 10))))
+    unique, counts = np.unique(seqs, return_counts=True)
+    repeated = unique[counts > 1]
+    last = max(int(unique[-1]), (made or 0) - 1)
+    present = np.zeros(last + 1, dtype=bool)
+    present[unique] = True
+    absent = np.flatnonzero(~present)
+    return ChannelSequence(
+        topic=topic,
+        messages=len(seqs),
+        first=int(seqs[0]),
+        last=last,
+        missing=len(absent),
+        duplicates=int(np.sum(counts[counts > 1] - 1)),
+        first_missing=absent[:10].tolist(),
+        first_duplicates=repeated[:10].tolist(),
+    )
+
+
+def assert_complete(path: Path | str) -> dict[str, ChannelSequence]:
+    """Raise AssertionError naming each channel with a missing or repeated sequence number."""
+    report = check_sequences(path)
+    bad = [
+        f"{s.topic}: {s.messages} messages, {s.missing} missing (first {s.first_missing}), "
+        f"{s.duplicates} duplicated (first {s.first_duplicates})"
+        for s in report.values()
+        if not s.complete
+    ]
+    assert not bad, f"{path}: " + "; ".join(bad)
+    return report
