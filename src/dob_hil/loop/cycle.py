@@ -59,13 +59,13 @@ class ControlCycle:
         C_rows: tuple[tuple[float, ...], ...],
         initial_x_bar: tuple[float, ...] | None = None,
         clock_ns: Callable[[], int] = time.perf_counter_ns,
+        sim_time: bool = False,
         check: Callable[[int, tuple[float, ...], tuple[float, ...]], None] | None = None,
     ) -> None:
-        """``check(k, position, x_ref)``: called after each command is sent (the safety envelope).
-
-        ``time_ns`` (the sample's log time) is on the run's one clock (simulated in lockstep);
-        ``rx_time_ns``/``tx_time_ns`` are the host's monotonic receive and send times in every
-        mode: wall-clock figures kept as fields (latency), with 0 meaning none."""
+        """``sim_time``: lockstep, where the sample instant ``time_ns`` is simulated time; the
+        sample's rx and tx times are logged on that clock too (the exchange takes no simulated
+        time). ``check(k, position, x_ref)``: called after each command is sent (the safety
+        envelope)."""
         self._update = step.update
         self._predict = step.predict
         self._ref_at = reference.at
@@ -86,6 +86,7 @@ class ControlCycle:
         self._last_codes: tuple[int, ...] = (0,) * step.n_inputs
         self._last_applied: tuple[float, ...] = self._zero_u
         self._last_u_dist: tuple[float, ...] = self._zero_u
+        self._sim_time = sim_time
         self._check = check
         self.stats = CycleStats()
 
@@ -102,6 +103,8 @@ class ControlCycle:
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, fb.seq)
         rx_ns = fb.rx_time_ns
+        if self._sim_time:
+            rx_ns = tx_ns = time_ns
         self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         flags = self._dob_flag | (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if overrun else 0)
         self._log.sample(
@@ -133,6 +136,8 @@ class ControlCycle:
         self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
         compute_ns = self._clock_ns() - t0
         tx_ns = self._link.send_command(codes, answers_seq)
+        if self._sim_time:
+            tx_ns = time_ns
         self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
         counts = last.counts if last is not None else (0,) * self.n_outputs
         flags = self._dob_flag | FLAG_MISSING | (FLAG_SATURATED if saturated else 0)

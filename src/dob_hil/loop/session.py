@@ -340,6 +340,7 @@ def _run_with_log(
         missing_policy=config.run.missing_feedback_policy,
         max_missing_periods=config.run.max_missing_periods,
         C_rows=tuple(tuple(float(c) for c in row) for row in design.C),
+        sim_time=mode == "lockstep",
         check=envelope.check,
     )
     limits = LoopLimits(n_samples, config.plant.period_ns, config.drive.feedback_timeout_periods)
