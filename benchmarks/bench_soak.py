@@ -107,7 +107,9 @@ def main() -> None:
     p.add_argument("--freeze-gc", action="store_true", help="dob-hil run --freeze-gc")
     p.add_argument("--drive-cpu", type=int, help="pin firmware_sim to this CPU")
     p.add_argument("--spin-us", type=float, help="firmware_sim --spin-us (default: its own, 100)")
-    p.add_argument("--patience-periods", type=int, default=200, help="watchdog/host timeout; 0: keep 10")
+    p.add_argument(
+        "--patience-periods", type=int, help="watchdog/host timeout; 0: keep 10 (200; smoke 10000)"
+    )
     p.add_argument("--keep-log", type=Path, help="copy the run's MCAP log here")
     args = p.parse_args()
     minutes = args.minutes if args.minutes is not None else (0.02 if args.smoke else 10.0)
@@ -120,7 +122,10 @@ def main() -> None:
     node_id = random.randint(2, 15)  # the native protocol has nodes 0..15
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp_name:
         tmp = Path(tmp_name)
-        cfg_path = node_config(tmp, node_id, args.patience_periods or None)
+        patience = args.patience_periods
+        if patience is None:
+            patience = 10_000 if args.smoke else 200  # the smoke run is part of the loaded test suite
+        cfg_path = node_config(tmp, node_id, patience or None)
         config = load_config(cfg_path)
         log_path = tmp / "soak.mcap"
         cmd = [*dob_hil_command(), "run", str(cfg_path), "-i", "udp_multicast", "-c", channel,

@@ -31,6 +31,8 @@ from fault_support import (
 from standalone import TruthReceiver, node_id_for_worker, standalone_drive
 from udp_isolation import UdpChannel
 
+from dob_hil.analysis.loaded import load_log
+from dob_hil.analysis.replay import verify
 from dob_hil.link.protocol import DriveState, FrameKind
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING
 from firmware_sim.faulty_bus import FaultPlan
@@ -140,7 +142,12 @@ def test_realtime_fault_case(case: RtCase, tmp_path: Path, udp_channel: UdpChann
     if case.plan == "loss":
         assert filled >= m.injected.get("drop", 0) > 0
         assert len(s) == round(DURATION_S * 1e9 / config.plant.period_ns)
-        assert abs(s["position"][-1, 0] - 1.0) < 0.2  # still tracking the step
+        # every command is what the controller computes from the logged feedback (timing-free);
+        # how well it tracks depends on how often a loaded machine starved it
+        result = verify(load_log(tmp_path / "rt.mcap"))
+        assert result.identical, result.first_mismatches
+        if filled - m.injected.get("drop", 0) < len(s) // 100:
+            assert abs(s["position"][-1, 0] - 1.0) < 0.2  # still tracking the step
 
     if case.trip == "drive_fault":
         # the host stops on the first feedback that carries FAULT: it answered the one before

@@ -174,7 +174,9 @@ def test_repeated_signals_while_stopping_keep_the_summary(sig: signal.Signals, t
         run.proc.send_signal(sig)
     _out, err = run.finish()
     assert "Traceback" not in err
-    assert run.proc.returncode == (130 if sig == signal.SIGINT else 143), err
+    # 130/143 from the run; or the signal's own status when one arrived after the log was closed
+    # and the handlers were restored (the process was already finishing: nothing is lost then)
+    assert run.proc.returncode in ((130 if sig == signal.SIGINT else 143), -sig), err
     data = read_log(log)
     assert data.complete and not data.warnings
     assert data.metadata["summary"]["exit_reason"] == sig.name

@@ -105,7 +105,11 @@ def test_exchange_with_a_standalone_drive(bus_spec: tuple[str, str, can.BusABC],
         host = Host(bus, node_id)
         host.wait_for(FeedbackFrame, timeout_s=30.0)  # the process is up and streaming
         host.control(ControlRequest.ENABLE)
+        # a periodic heartbeat sent before the drive read the enable may still say DISABLED
+        deadline = time.monotonic() + 30.0
         frames = host.wait_for(HeartbeatFrame, timeout_s=30.0)
+        while frames[-1] != HeartbeatFrame(DriveState.ENABLED) and time.monotonic() < deadline:
+            frames = host.wait_for(HeartbeatFrame, timeout_s=30.0)
         assert frames[-1] == HeartbeatFrame(DriveState.ENABLED)
         answered = 0
         deadline = time.monotonic() + 60.0  # a bound against a hang only

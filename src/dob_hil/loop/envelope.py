@@ -150,6 +150,29 @@ class Envelope:
         self._prev_k = 0
         self.jumps = 0
         self.reason: str | None = None
+        if len(C_rows) == 1 and self._max_err == math.inf:
+            self.check = self._check_one  # type: ignore[method-assign]  # the common case, kept short
+
+    def _check_one(self, k: int, position: tuple[float, ...], x_ref: tuple[float, ...]) -> None:
+        """:meth:`check` for one output and no tracking limit (same verdicts, fewer steps)."""
+        y = position[0]
+        prev, prev_k = self._prev, self._prev_k
+        self._prev, self._prev_k = position, k
+        if self._low <= y <= self._high and y - y == 0.0:
+            if prev is None:
+                return
+            dk = k - prev_k
+            if dk == 1:
+                v = (y - prev[0]) / self._period_s
+            elif dk > 1:
+                v = (y - prev[0]) / (dk * self._period_s)
+            else:
+                return
+            if -self._max_vel <= v <= self._max_vel:
+                return
+        self._prev = prev  # the full check names what was wrong
+        self._prev_k = prev_k
+        Envelope.check(self, k, position, x_ref)
 
     def _fail(self, reason: str) -> None:
         if self.reason is None:

@@ -6,8 +6,9 @@ re-stamped with the drive's time. Real time: every channel is on ``time.monotoni
 channel's log time is kept non-decreasing (a frame's bus timestamp, the udp_multicast echo of our
 own command, can be earlier than the frame logged before it; an event raised with an earlier
 reading of the clock comes after one raised later): a time earlier than the channel's last is
-logged at the last. Host wall-clock figures stay as fields (``compute_ns``, the summary's
-``wall_time_s``).
+logged at the last. In lockstep a sample's ``rx_time_ns``/``tx_time_ns`` are its simulated
+instant too (the exchange takes no simulated time). Host wall-clock figures stay as fields
+(``compute_ns``, the summary's ``wall_time_s``).
 
 Real time, the frame hook only queues a frame with its time; the control thread packs the queued
 frames at :meth:`LoopLog.flush`, after the period's command is sent. The embedded real-time
