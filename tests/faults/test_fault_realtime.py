@@ -180,8 +180,10 @@ def test_realtime_fault_case(case: RtCase, tmp_path: Path, udp_channel: UdpChann
         same = (
             int(np.argmax(codes_sent[::-1] != codes_sent[-1])) if np.any(codes_sent != codes_sent[-1]) else 0
         )
-        # (-2: a truth datagram or two may be lost on a loaded machine)
-        assert PATIENCE - 2 <= m.trip_periods <= PATIENCE + same + 2, (m.trip_periods, same)
+        # (-2: a truth datagram or two may be lost on a loaded machine; +50: the current's last change
+        # is read from ground truth, and commands that reached the drive late on a starved machine
+        # move it by a few periods; the watchdog's exact count is tested in lockstep)
+        assert PATIENCE - 2 <= m.trip_periods <= PATIENCE + same + 50, (m.trip_periods, same)
         assert events["send_failed"] >= 3  # the failed command and both frames of the stop
         m.ended = "drive watchdog FAULT"
     if case.plan != "bus_off":

@@ -147,8 +147,11 @@ import can, signal, subprocess, sys, time
 port, out = int(sys.argv[1]), sys.argv[2]
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "add", "224.0.0.0/4", "dev", "lo"], check=True)
-logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.9",
-                           "--bus-kwargs", f"port={port}", "-f", out], stdout=subprocess.PIPE, text=True)
+logger = subprocess.Popen(
+    [sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.9",
+     "--bus-kwargs", f"port={port}", "-f", out],
+    stdout=subprocess.PIPE, text=True,
+)
 try:
     assert logger.stdout is not None
     for line in logger.stdout:  # python-can's logger prints this once its bus is open
