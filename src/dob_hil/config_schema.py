@@ -312,6 +312,21 @@ SCHEMA: tuple[SectionSpec, ...] = (
         _f("freeze_gc", "boolean", "Real time: gc.freeze() and gc.disable() during the run.",
            default=False),
     )),
+    SectionSpec("safety", "A safety envelope: crossing any bound stops the run safely (zero current, "
+                "drive disabled) with a non-zero exit naming the bound. A non-finite position always "
+                "trips.", (
+        _f("max_abs_position", "number", "Largest |measured output|.", unit="output unit", low=0.0,
+           low_open=True),
+        _f("position_window", "numbers", "Allowed [low, high] of the measured output.",
+           unit="output unit", example="[-2.0, 2.0]"),
+        _f("max_abs_velocity", "number", "Largest |estimated output velocity| (default: the speed at "
+           "which the encoder moves a quarter of its range per period).", unit="output unit/s",
+           low=0.0, low_open=True),
+        _f("max_tracking_error", "number", "Largest |reference - measured output|.",
+           unit="output unit", low=0.0, low_open=True),
+        _f("max_encoder_jumps", "integer", "Encoder-jump events tolerated before a trip.", default=0,
+           low=0, high=1_000_000_000),
+    )),
 )
 # fmt: on
 
