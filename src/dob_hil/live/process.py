@@ -1,0 +1,152 @@
+"""Start and stop the live-server process, and the queue the tap feeds.
+
+The process is started with ``spawn`` (a fresh interpreter: no threads or locks inherited from
+the loop's process) before the drive is enabled, and the run waits until its server listens: a
+port that cannot be served is a :class:`LiveError` (exit status 2) and the drive is never enabled.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+from dob_hil.errors import DobHilError
+from dob_hil.live.tap import LiveTap, decimation_for
+from dob_hil.log.schemas import LogLayout
+
+DEFAULT_PORT = 8765
+DEFAULT_RATE_HZ = 100.0
+DEFAULT_QUEUE_ITEMS = 1024
+START_TIMEOUT_S = 60.0  # a spawned interpreter importing the SDK, on a loaded machine
+STOP_TIMEOUT_S = 30.0
+
+
+class LiveError(DobHilError):
+    """The live view cannot be served (bad option, port taken, SDK missing)."""
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """``dob-hil run --live [PORT]``: port 0 picks a free one (``on_ready`` is told which)."""
+
+    port: int = DEFAULT_PORT
+    host: str = "127.0.0.1"
+    rate_hz: float = DEFAULT_RATE_HZ
+    queue_items: int = DEFAULT_QUEUE_ITEMS
+    linger_s: float = 0.5  # after the run, before the server stops: viewers draw the end
+    on_ready: Callable[[str, int], None] | None = None  # (host, port) once the server listens
+
+    def check(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise LiveError(f"--live: port must be 0..65535, got {self.port}")
+        if not (self.rate_hz > 0 and self.rate_hz <= 10_000):
+            raise LiveError(f"--live-rate: must be > 0 and <= 10000 Hz, got {self.rate_hz}")
+        if self.queue_items < 1:
+            raise LiveError(f"live queue: must hold >= 1 item, got {self.queue_items}")
+        if not self.linger_s >= 0:
+            raise LiveError(f"--live-linger: must be >= 0 s, got {self.linger_s}")
+
+
+class LiveServer:
+    """The live-server process and the tap that feeds it; a context manager."""
+
+    def __init__(
+        self,
+        options: LiveOptions,
+        layout: LogLayout,
+        period_ns: int,
+        design_json: str,
+        run_meta: Mapping[str, str],
+    ) -> None:
+        options.check()
+        try:
+            import foxglove  # noqa: F401  (fail here, in this process, with a clear line)
+        except ImportError as exc:
+            raise LiveError("--live: needs the foxglove-sdk package (pip install 'dob-hil[live]')") from exc
+        from dob_hil.live import server
+
+        self.options = options
+        ctx = multiprocessing.get_context("spawn")
+        self._items: Any = ctx.Queue(options.queue_items)
+        self._status: Any = ctx.Queue()
+        self.tap = LiveTap(self._items, decimation_for(period_ns, options.rate_hz))
+        self._proc = ctx.Process(
+            target=server.serve,
+            args=(
+                self._items,
+                self._status,
+                options.host,
+                options.port,
+                layout,
+                design_json,
+                dict(run_meta),
+                options.linger_s,
+            ),
+            name="dob-hil-live",
+            daemon=True,
+        )
+        self.port = 0
+        self.closed_report: dict[str, int] | None = None
+        self._closed = False
+        self._proc.start()
+        kind, value = self._wait_start()
+        if kind != "ready":
+            self._proc.join(STOP_TIMEOUT_S)
+            raise LiveError(f"--live: cannot serve on {options.host}:{options.port}: {value}")
+        self.port = int(value)
+        if options.on_ready is not None:
+            options.on_ready(options.host, self.port)
+
+    def _wait_start(self) -> tuple[str, Any]:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            try:
+                kind, value = self._status.get(timeout=0.2)
+                return str(kind), value
+            except queue.Empty:
+                pass
+            if not self._proc.is_alive():
+                self._kill()
+                raise LiveError(
+                    f"--live: the live server process ended at start (exit {self._proc.exitcode})"
+                )
+            if time.monotonic() > deadline:
+                self._kill()
+                raise LiveError(f"--live: the live server did not start within {START_TIMEOUT_S:.0f} s")
+
+    def _kill(self) -> None:
+        if self._proc.is_alive():
+            self._proc.kill()
+        self._proc.join(STOP_TIMEOUT_S)
+        self._items.cancel_join_thread()
+
+    def close(self) -> None:
+        """After the run: the sentinel, then wait for the process (bounded)."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._proc.is_alive():
+            self._kill()
+            return
+        try:
+            self._items.put(None, timeout=STOP_TIMEOUT_S)
+            kind, value = self._status.get(timeout=STOP_TIMEOUT_S + self.options.linger_s)
+            if kind == "closed":
+                self.closed_report = dict(value)
+        except (queue.Full, queue.Empty):
+            pass
+        self._proc.join(STOP_TIMEOUT_S)
+        self._kill()
+
+    def __enter__(self) -> LiveServer:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()

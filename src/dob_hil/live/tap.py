@@ -1,0 +1,116 @@
+"""The control-thread side of the live view: a decimating, never-blocking tap on the log writer.
+
+:class:`TappedLogWriter` is the run's :class:`~dob_hil.log.writer.LogWriter` with three methods
+extended: every ``decimation``-th sample and ground-truth record, and every event, are also handed
+to the live-server process through a bounded ``multiprocessing`` queue with a non-blocking put.
+When the queue is full (the live process is behind) the item is dropped and counted; the loop
+never waits for the viewer. The MCAP log keeps every record.
+
+The items are the writer's own arguments (``("s", args)``, ``("t", args)``, ``("e", args)``);
+the live process packs them into the same CDR messages as the log (:mod:`dob_hil.live.server`),
+so the control thread only pays a counter per record and one put per forwarded item.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from dob_hil.log import LogWriter
+
+KIND_SAMPLE = "s"
+KIND_TRUTH = "t"
+KIND_EVENT = "e"
+
+
+class PutQueue(Protocol):
+    def put_nowait(self, obj: Any) -> None: ...
+
+
+@dataclass
+class TapStats:
+    forwarded: int = 0  # items put on the queue
+    dropped: int = 0  # items the full queue refused
+
+    def as_dict(self) -> dict[str, int]:
+        return {"forwarded": self.forwarded, "dropped": self.dropped}
+
+
+def decimation_for(period_ns: int, rate_hz: float) -> int:
+    """Every how many-th sample to forward so that about ``rate_hz`` reach the viewer (>= 1)."""
+    if not rate_hz > 0:
+        raise ValueError(f"live rate: must be > 0 Hz, got {rate_hz}")
+    return max(1, round(1e9 / (period_ns * rate_hz)))
+
+
+class LiveTap:
+    """Forwards items to ``q`` with a non-blocking put; counts what the full queue refused."""
+
+    def __init__(self, q: PutQueue, decimation: int) -> None:
+        if decimation < 1:
+            raise ValueError(f"live decimation: must be >= 1, got {decimation}")
+        self._put = q.put_nowait
+        self.decimation = decimation
+        self.stats = TapStats()
+
+    def put(self, item: tuple[str, tuple[Any, ...]]) -> None:
+        try:
+            self._put(item)
+        except queue.Full:
+            self.stats.dropped += 1
+        else:
+            self.stats.forwarded += 1
+
+
+class TappedLogWriter(LogWriter):
+    """A :class:`LogWriter` that also feeds a :class:`LiveTap` (decimated samples and truth, all
+    events). Same arguments as :class:`LogWriter`, plus ``tap``."""
+
+    def __init__(self, *args: Any, tap: LiveTap, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.tap = tap
+        self._live_every = tap.decimation
+        self._live_sample_left = 1  # the first sample goes out at once
+        self._live_truth_left = 1
+        self._live_last_event_ns = 0
+
+    def sample(self, *args: Any) -> None:  # the 18 arguments of LogWriter.sample
+        super().sample(*args)
+        left = self._live_sample_left - 1
+        if left:
+            self._live_sample_left = left
+            return
+        self._live_sample_left = self._live_every
+        self.tap.put((KIND_SAMPLE, args))
+
+    def truth(self, *args: Any) -> None:  # the 6 arguments of LogWriter.truth
+        super().truth(*args)
+        left = self._live_truth_left - 1
+        if left:
+            self._live_truth_left = left
+            return
+        self._live_truth_left = self._live_every
+        self.tap.put((KIND_TRUTH, args))
+
+    def event(
+        self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
+    ) -> None:
+        super().event(time_ns, level, kind, message, data)
+        self._live_last_event_ns = max(self._live_last_event_ns, int(time_ns))
+        self.tap.put(
+            (KIND_EVENT, (int(time_ns), level, kind, message, json.dumps(dict(data or {}), default=str)))
+        )
+
+    def close(self, summary: Mapping[str, Any] | None = None, timeout_s: float = 60.0) -> None:
+        """Note in the log how many live items were forwarded and dropped, then close it."""
+        if not self.closed:
+            s = self.tap.stats
+            super().event(
+                self._live_last_event_ns, "info", "live_stats",
+                f"live view: {s.forwarded} items forwarded, {s.dropped} dropped (queue full)",
+                s.as_dict(),
+            )  # fmt: skip
+        super().close(summary, timeout_s)
