@@ -17,6 +17,7 @@ message)``, and at the end ``("closed", {"served": n, "bad": n})``.
 from __future__ import annotations
 
 import queue
+import signal
 import struct
 import time
 from collections.abc import Mapping
@@ -91,7 +92,12 @@ def serve(
     run_meta: Mapping[str, str],
     linger_s: float,
 ) -> None:
-    """The process body: serve until the ``None`` sentinel, then linger ``linger_s`` and stop."""
+    """The process body: serve until the ``None`` sentinel, then linger ``linger_s`` and stop.
+
+    A terminal's Ctrl-C reaches the whole process group: the run stops on it and then sends the
+    sentinel, so this process ignores SIGINT and serves the run's end (its events) first.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         import foxglove
         from foxglove.websocket import Capability, ServerListener
