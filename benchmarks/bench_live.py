@@ -14,6 +14,9 @@ Per mode (the median over rounds of each round's figure): feedback-to-command la
 and the ratio of each latency percentile against ``off`` timed in the same run. Goal: with a
 viewer connected (fast or stalled), latency p50 and p99 within 1.2x of ``off``.
 
+``tap_cost``: the control thread's own price, free of the run's noise: ``LogWriter.sample``
+against ``TappedLogWriter.sample`` feeding a running live server, per call (median of chunks).
+
     .venv/bin/python benchmarks/bench_live.py [--smoke] [--json] [--duration S] [--rounds N]
 """
 
@@ -105,6 +108,47 @@ def _median_of(rounds: list[dict[str, Any]], key: str, q: str) -> float | None:
     return round(median(values), 1) if values else None
 
 
+def _tap_cost(calls: int, chunks: int) -> dict[str, Any]:
+    """What the control thread pays per sample for the tap: ``LogWriter.sample`` (no file: packing
+    only) against ``TappedLogWriter.sample`` feeding a running live server at 100 samples/s of a
+    Ts = 300 us run (every 33rd call is put on the queue), interleaved chunk by chunk."""
+    import os
+    import time
+
+    from dob_hil.live.process import LiveServer
+    from dob_hil.live.tap import TappedLogWriter
+    from dob_hil.log import LogWriter
+    from dob_hil.log.schemas import LogLayout
+
+    layout = LogLayout(n_states=4, n_inputs=1, n_outputs=1, n_plant_states=2)
+    n = layout.n_states
+    args = (1, 2, 3, 4, (5,), (0.1,), (0.2,) * n, (0.3,) * n, (0.4,) * n, (0.5,), (0.6,), (0.7,), (0.7,),
+            9, 10, (11,), 12, 8)  # fmt: skip
+    with LiveServer(LiveOptions(port=0, linger_s=0.0), layout, 300_000, "{}", {}) as live:
+        plain = LogWriter(Path(os.devnull), layout)
+        tapped = TappedLogWriter(Path(os.devnull), layout, tap=live.tap)
+        per: dict[str, list[float]] = {"plain": [], "tapped": []}
+        for _ in range(chunks):
+            for name, w in (("plain", plain), ("tapped", tapped)):
+                sample = w.sample
+                t0 = time.perf_counter_ns()
+                for k in range(calls):
+                    sample(*args[:13], k, *args[14:])
+                per[name].append((time.perf_counter_ns() - t0) / calls)
+                w.flush(force=True)
+        plain.close()
+        tapped.close()
+        stats = live.tap.stats.as_dict()
+    p50 = {k: round(median(v), 1) for k, v in per.items()}
+    return {
+        "sample_call_ns_p50_plain": p50["plain"],
+        "sample_call_ns_p50_tapped": p50["tapped"],
+        "tap_extra_ns_per_sample": round(p50["tapped"] - p50["plain"], 1),
+        "ratio": round(p50["tapped"] / p50["plain"], 2),
+        "live_items": stats,
+    }
+
+
 def _ratio(value: float | None, base: float | None) -> float | None:
     return round(value / base, 2) if value is not None and base else None
 
@@ -130,6 +174,7 @@ def main() -> None:
                 print(f"bench_live: round {r + 1}/{rounds}: {mode}", file=sys.stderr, flush=True)
                 per_mode[mode].append(_run(mode, cfg_path, channel, duration_s, tmp / f"{mode}-{r}.mcap"))
     result: dict[str, Any] = {"duration_s": duration_s, "rounds": rounds, "channel": f"{channel} port {port}"}
+    result["tap_cost"] = _tap_cost(2_000 if args.smoke else 20_000, 5 if args.smoke else 25)
     base = {q: _median_of(per_mode["off"], "latency_us", q) for q in ("p50", "p99")}
     met: dict[str, bool | None] = {}
     for mode, runs in per_mode.items():

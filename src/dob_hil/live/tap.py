@@ -65,6 +65,10 @@ class LiveTap:
             self.stats.forwarded += 1
 
 
+_log_sample = LogWriter.sample
+_log_truth = LogWriter.truth
+
+
 class TappedLogWriter(LogWriter):
     """A :class:`LogWriter` that also feeds a :class:`LiveTap` (decimated samples and truth, all
     events). Same arguments as :class:`LogWriter`, plus ``tap``."""
@@ -78,7 +82,7 @@ class TappedLogWriter(LogWriter):
         self._live_last_event_ns = 0
 
     def sample(self, *args: Any) -> None:  # the 18 arguments of LogWriter.sample
-        super().sample(*args)
+        _log_sample(self, *args)  # the plain function: no super() object per sample
         left = self._live_sample_left - 1
         if left:
             self._live_sample_left = left
@@ -87,7 +91,7 @@ class TappedLogWriter(LogWriter):
         self.tap.put((KIND_SAMPLE, args))
 
     def truth(self, *args: Any) -> None:  # the 6 arguments of LogWriter.truth
-        super().truth(*args)
+        _log_truth(self, *args)
         left = self._live_truth_left - 1
         if left:
             self._live_truth_left = left
