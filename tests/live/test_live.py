@@ -60,14 +60,21 @@ def test_decimation_is_the_rate_over_the_sample_rate() -> None:
         decimation_for(1_000_000, 0.0)
 
 
-def test_full_queue_drops_and_counts_never_waits() -> None:
-    import queue
+def test_a_full_pipe_drops_and_counts_never_waits() -> None:
+    import multiprocessing
 
-    q: queue.Queue[Any] = queue.Queue(2)
-    tap = LiveTap(q, 1)
-    for i in range(5):
-        tap.put((KIND_SAMPLE, (i,)))
-    assert (tap.stats.forwarded, tap.stats.dropped) == (2, 3)
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    tap = LiveTap(writer.fileno(), 1)
+    item = (KIND_SAMPLE, (1, 2, 3, 4, (5,), (0.1,)))
+    for _ in range(100_000):  # far more than any pipe holds: the writes past its capacity fail
+        tap.put(item)
+    assert tap.stats.forwarded > 0 and tap.stats.dropped > 0
+    assert tap.stats.forwarded + tap.stats.dropped == 100_000
+    for _ in range(tap.stats.forwarded):  # whatever went in is whole, message by message
+        assert reader.recv() == item
+    assert not reader.poll()
+    writer.close()
+    reader.close()
 
 
 def test_a_client_connected_during_a_run_gets_decoded_samples_events_and_the_design(
@@ -169,10 +176,10 @@ def test_a_client_connected_during_a_run_gets_decoded_samples_events_and_the_des
     assert summary.live is not None and summary.live["forwarded"] >= len(client.messages) - len(events)
 
 
-def test_no_viewer_and_a_full_queue_never_stop_the_run(paper_step: Config, tmp_path: Path) -> None:
-    """Lockstep runs far faster than 100 samples/s of wall time: the one-item queue overflows."""
+def test_no_viewer_and_a_full_pipe_never_stop_the_run(paper_step: Config, tmp_path: Path) -> None:
+    """Lockstep runs far faster than real time, every sample forwarded into the smallest pipe."""
     log_path = tmp_path / "nobody.mcap"
-    live = LiveOptions(port=0, rate_hz=3333.0, queue_items=1, linger_s=0.0)
+    live = LiveOptions(port=0, rate_hz=3333.0, pipe_bytes=4096, linger_s=0.0)
     summary = run_session(paper_step, RunOptions(log_path=log_path, live=live))
     assert summary.exit_reason == "completed"
     assert summary.live is not None and summary.live["forwarded"] >= 1
@@ -221,3 +228,13 @@ def test_bad_live_options_are_refused() -> None:
         LiveOptions(rate_hz=-1).check()
     with pytest.raises(LiveError, match="--live: port"):
         LiveOptions(port=70000).check()
+
+
+def test_cli_live_announces_the_port_and_reports_in_the_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["run", "--scenario", "paper-step", "--no-log", "--no-progress", "--json", "--live", "0"]
+    status = cli_main([*argv, "--live-rate", "50"])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    assert "dob-hil run: live view on ws://127.0.0.1:" in err
+    live = json.loads(out)["live"]
+    assert live["port"] > 0 and live["forwarded"] >= 1

@@ -69,7 +69,7 @@ def format_summary(s: dict[str, object]) -> str:
         lv = s["live"]
         lines.append(
             f"  live view        port {lv['port']}: {lv['forwarded']} items sent, "  # type: ignore[index]
-            f"{lv['dropped']} dropped (viewer queue full)"  # type: ignore[index]
+            f"{lv['dropped']} dropped (live process behind)"  # type: ignore[index]
         )
     if s["events"]:
         lines.append(f"  link events      {s['events']}")

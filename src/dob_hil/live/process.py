@@ -1,4 +1,4 @@
-"""Start and stop the live-server process, and the queue the tap feeds.
+"""Start and stop the live-server process, and the pipe the tap feeds.
 
 The process is started with ``spawn`` (a fresh interpreter: no threads or locks inherited from
 the loop's process) before the drive is enabled, and the run waits until its server listens: a
@@ -7,6 +7,7 @@ port that cannot be served is a :class:`LiveError` (exit status 2) and the drive
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import queue
 import time
@@ -21,9 +22,18 @@ from dob_hil.log.schemas import LogLayout
 
 DEFAULT_PORT = 8765
 DEFAULT_RATE_HZ = 100.0
-DEFAULT_QUEUE_ITEMS = 1024
+DEFAULT_PIPE_BYTES = 256 * 1024  # about 800 items of ~300 bytes: 8 s of a 100 Hz view
+F_SETPIPE_SZ = 1031  # fcntl.F_SETPIPE_SZ (Linux; named in fcntl from Python 3.10 on Linux only)
 START_TIMEOUT_S = 60.0  # a spawned interpreter importing the SDK, on a loaded machine
 STOP_TIMEOUT_S = 30.0
+
+
+def _set_pipe_size(fd: int, size: int) -> None:
+    """Ask for a pipe of ``size`` bytes (Linux); elsewhere, or refused, the default stays."""
+    import fcntl
+
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(fd, F_SETPIPE_SZ, size)
 
 
 class LiveError(DobHilError):
@@ -37,7 +47,7 @@ class LiveOptions:
     port: int = DEFAULT_PORT
     host: str = "127.0.0.1"
     rate_hz: float = DEFAULT_RATE_HZ
-    queue_items: int = DEFAULT_QUEUE_ITEMS
+    pipe_bytes: int = DEFAULT_PIPE_BYTES  # the pipe to the live process (the OS may round it)
     linger_s: float = 0.5  # after the run, before the server stops: viewers draw the end
     on_ready: Callable[[str, int], None] | None = None  # (host, port) once the server listens
 
@@ -46,8 +56,8 @@ class LiveOptions:
             raise LiveError(f"--live: port must be 0..65535, got {self.port}")
         if not (self.rate_hz > 0 and self.rate_hz <= 10_000):
             raise LiveError(f"--live-rate: must be > 0 and <= 10000 Hz, got {self.rate_hz}")
-        if self.queue_items < 1:
-            raise LiveError(f"live queue: must hold >= 1 item, got {self.queue_items}")
+        if self.pipe_bytes < 4096:
+            raise LiveError(f"live pipe: must hold >= 4096 bytes, got {self.pipe_bytes}")
         if not self.linger_s >= 0:
             raise LiveError(f"--live-linger: must be >= 0 s, got {self.linger_s}")
 
@@ -72,13 +82,14 @@ class LiveServer:
 
         self.options = options
         ctx = multiprocessing.get_context("spawn")
-        self._items: Any = ctx.Queue(options.queue_items)
+        reader, self._writer = ctx.Pipe(duplex=False)
+        _set_pipe_size(self._writer.fileno(), options.pipe_bytes)
         self._status: Any = ctx.Queue()
-        self.tap = LiveTap(self._items, decimation_for(period_ns, options.rate_hz))
+        self.tap = LiveTap(self._writer.fileno(), decimation_for(period_ns, options.rate_hz))
         self._proc = ctx.Process(
             target=server.serve,
             args=(
-                self._items,
+                reader,
                 self._status,
                 options.host,
                 options.port,
@@ -94,6 +105,7 @@ class LiveServer:
         self.closed_report: dict[str, int] | None = None
         self._closed = False
         self._proc.start()
+        reader.close()  # the child has its own copy: the writer's close is then its end of input
         kind, value = self._wait_start()
         if kind != "ready":
             self._proc.join(STOP_TIMEOUT_S)
@@ -120,28 +132,28 @@ class LiveServer:
                 raise LiveError(f"--live: the live server did not start within {START_TIMEOUT_S:.0f} s")
 
     def _kill(self) -> None:
+        self._closed = True
         if self._proc.is_alive():
             self._proc.kill()
         self._proc.join(STOP_TIMEOUT_S)
-        self._items.cancel_join_thread()
+        self._writer.close()
 
     def close(self) -> None:
-        """After the run: the sentinel, then wait for the process (bounded)."""
+        """After the run: close the pipe (the server's end of input), then wait for it (bounded)."""
         if self._closed:
             return
         self._closed = True
-        if not self._proc.is_alive():
-            self._kill()
-            return
+        self._writer.close()
         try:
-            self._items.put(None, timeout=STOP_TIMEOUT_S)
             kind, value = self._status.get(timeout=STOP_TIMEOUT_S + self.options.linger_s)
             if kind == "closed":
                 self.closed_report = dict(value)
-        except (queue.Full, queue.Empty):
+        except queue.Empty:
             pass
         self._proc.join(STOP_TIMEOUT_S)
-        self._kill()
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(STOP_TIMEOUT_S)
 
     def __enter__(self) -> LiveServer:
         return self

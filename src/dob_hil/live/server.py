@@ -2,10 +2,11 @@
 
 It advertises the log's channels with the log's own schemas (ros2msg text, CDR messages:
 :func:`dob_hil.log.schemas.channel_specs`), so one Foxglove layout works for the live view and for
-the MCAP file. It takes the items :mod:`dob_hil.live.tap` put on the queue, packs each into the
-CDR message the log holds, and logs it on its channel with the record's log time. The design and
-the run's metadata are served as parameters (``dob_hil.design``: the design JSON;
-``dob_hil.run.<key>``: each run metadata value), which a viewer can read at any time.
+the MCAP file. It takes the items :mod:`dob_hil.live.tap` writes to the pipe (``items``, a
+``Connection``), packs each into the CDR message the log holds, and logs it on its channel with
+the record's log time. The design and the run's metadata are served as parameters
+(``dob_hil.design``: the design JSON; ``dob_hil.run.<key>``: each run metadata value), which a
+viewer can read at any time.
 
 A slow viewer costs nothing here either: the SDK keeps a bounded backlog per client and drops
 that client's oldest data messages (``message_backlog_size``).
@@ -16,7 +17,6 @@ message)``, and at the end ``("closed", {"served": n, "bad": n})``.
 
 from __future__ import annotations
 
-import queue
 import signal
 import struct
 import time
@@ -92,10 +92,10 @@ def serve(
     run_meta: Mapping[str, str],
     linger_s: float,
 ) -> None:
-    """The process body: serve until the ``None`` sentinel, then linger ``linger_s`` and stop.
+    """The process body: serve until the pipe's end, then linger ``linger_s`` and stop.
 
-    A terminal's Ctrl-C reaches the whole process group: the run stops on it and then sends the
-    sentinel, so this process ignores SIGINT and serves the run's end (its events) first.
+    A terminal's Ctrl-C reaches the whole process group: the run stops on it and then closes the
+    pipe, so this process ignores SIGINT and serves the run's end (its events) first.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
@@ -142,10 +142,8 @@ def serve(
     try:
         while True:
             try:
-                item = items.get(timeout=1.0)
-            except queue.Empty:
-                continue
-            if item is None:
+                item = items.recv()
+            except EOFError:  # the run closed its end: it is over
                 break
             kind, args = item
             try:

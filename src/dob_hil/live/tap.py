@@ -2,22 +2,25 @@
 
 :class:`TappedLogWriter` is the run's :class:`~dob_hil.log.writer.LogWriter` with three methods
 extended: every ``decimation``-th sample and ground-truth record, and every event, are also handed
-to the live-server process through a bounded ``multiprocessing`` queue with a non-blocking put.
-When the queue is full (the live process is behind) the item is dropped and counted; the loop
-never waits for the viewer. The MCAP log keeps every record.
+to the live-server process through a non-blocking pipe (:class:`LiveTap`). When the pipe is full
+(the live process is behind) the item is dropped and counted; the loop never waits for the
+viewer. The MCAP log keeps every record.
 
 The items are the writer's own arguments (``("s", args)``, ``("t", args)``, ``("e", args)``);
 the live process packs them into the same CDR messages as the log (:mod:`dob_hil.live.server`),
-so the control thread only pays a counter per record and one put per forwarded item.
+so the control thread only pays a counter per record and one pickle and ``write`` per forwarded
+item.
 """
 
 from __future__ import annotations
 
 import json
-import queue
+import os
+import pickle
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Final
 
 from dob_hil.log import LogWriter
 
@@ -26,14 +29,15 @@ KIND_TRUTH = "t"
 KIND_EVENT = "e"
 
 
-class PutQueue(Protocol):
-    def put_nowait(self, obj: Any) -> None: ...
+PIPE_ATOMIC_BYTES: Final = 4096  # PIPE_BUF on Linux: a write this size is never split
+_HEAD: Final = struct.Struct("!i")  # multiprocessing.Connection's message header
+EVENT_TEXT_CHARS: Final = 1000  # an event's message and data JSON are cut to fit one atomic write
 
 
 @dataclass
 class TapStats:
-    forwarded: int = 0  # items put on the queue
-    dropped: int = 0  # items the full queue refused
+    forwarded: int = 0  # items written to the pipe
+    dropped: int = 0  # items the full (or closed) pipe refused
 
     def as_dict(self) -> dict[str, int]:
         return {"forwarded": self.forwarded, "dropped": self.dropped}
@@ -47,22 +51,35 @@ def decimation_for(period_ns: int, rate_hz: float) -> int:
 
 
 class LiveTap:
-    """Forwards items to ``q`` with a non-blocking put; counts what the full queue refused."""
+    """Writes items to a non-blocking pipe (``fd``, the sending end of a ``multiprocessing.Pipe``)
+    as ``Connection`` messages: a 4-byte length and the pickle, in one write of at most
+    ``PIPE_BUF`` bytes, which the kernel either takes whole or refuses (``EAGAIN``: dropped and
+    counted). No thread of ours is involved (a ``multiprocessing.Queue`` would wake its feeder
+    thread, which takes the GIL from the loop, for every item)."""
 
-    def __init__(self, q: PutQueue, decimation: int) -> None:
+    def __init__(self, fd: int, decimation: int) -> None:
         if decimation < 1:
             raise ValueError(f"live decimation: must be >= 1, got {decimation}")
-        self._put = q.put_nowait
+        os.set_blocking(fd, False)
+        self._fd = fd
         self.decimation = decimation
         self.stats = TapStats()
 
     def put(self, item: tuple[str, tuple[Any, ...]]) -> None:
+        data = pickle.dumps(item, pickle.HIGHEST_PROTOCOL)
+        if len(data) + _HEAD.size > PIPE_ATOMIC_BYTES:
+            self.stats.dropped += 1
+            return
         try:
-            self._put(item)
-        except queue.Full:
+            os.write(self._fd, _HEAD.pack(len(data)) + data)
+        except OSError:  # BlockingIOError: the pipe is full; BrokenPipeError: the server is gone
             self.stats.dropped += 1
         else:
             self.stats.forwarded += 1
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= EVENT_TEXT_CHARS else text[: EVENT_TEXT_CHARS - 3] + "..."
 
 
 _log_sample = LogWriter.sample
@@ -114,7 +131,7 @@ class TappedLogWriter(LogWriter):
             s = self.tap.stats
             super().event(
                 self._live_last_event_ns, "info", "live_stats",
-                f"live view: {s.forwarded} items forwarded, {s.dropped} dropped (queue full)",
+                f"live view: {s.forwarded} items forwarded, {s.dropped} dropped (pipe full)",
                 s.as_dict(),
             )  # fmt: skip
         super().close(summary, timeout_s)
