@@ -20,9 +20,9 @@ from mcap_ros2._dynamic import generate_dynamic
 
 from dob_hil.cli import main as cli_main
 from dob_hil.config import Config, load_config
+from dob_hil.live.packing import KIND_SAMPLE, Packer, unframe
 from dob_hil.live.process import LiveError, LiveOptions
-from dob_hil.live.server import Packer
-from dob_hil.live.tap import KIND_SAMPLE, LiveTap, decimation_for
+from dob_hil.live.tap import LiveTap, decimation_for
 from dob_hil.log import read_log
 from dob_hil.log.schemas import (
     CH_EVENT,
@@ -65,13 +65,13 @@ def test_a_full_pipe_drops_and_counts_never_waits() -> None:
 
     reader, writer = multiprocessing.Pipe(duplex=False)
     tap = LiveTap(writer.fileno(), 1)
-    item = (KIND_SAMPLE, (1, 2, 3, 4, (5,), (0.1,)))
+    item = bytes(range(200))
     for _ in range(100_000):  # far more than any pipe holds: the writes past its capacity fail
         tap.put(item)
     assert tap.stats.forwarded > 0 and tap.stats.dropped > 0
     assert tap.stats.forwarded + tap.stats.dropped == 100_000
     for _ in range(tap.stats.forwarded):  # whatever went in is whole, message by message
-        assert reader.recv() == item
+        assert reader.recv_bytes() == item
     assert not reader.poll()
     writer.close()
     reader.close()
@@ -208,6 +208,10 @@ def test_packer_makes_the_logs_cdr(paper_step: Config, tmp_path: Path) -> None:
     )
     _t, payload = Packer(data.layout).pack(KIND_SAMPLE, args)
     assert payload == first.data
+    kind, t, framed = unframe(Packer(data.layout).frame(KIND_SAMPLE, args))
+    assert (kind, t, framed) == (KIND_SAMPLE, int(s["time_ns"]), first.data)
+    with pytest.raises(ValueError):
+        unframe(b"\x09" + bytes(8))
 
 
 def test_cli_port_taken_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

@@ -2,9 +2,9 @@
 
 It advertises the log's channels with the log's own schemas (ros2msg text, CDR messages:
 :func:`dob_hil.log.schemas.channel_specs`), so one Foxglove layout works for the live view and for
-the MCAP file. It takes the items :mod:`dob_hil.live.tap` writes to the pipe (``items``, a
-``Connection``), packs each into the CDR message the log holds, and logs it on its channel with
-the record's log time. The design and the run's metadata are served as parameters
+the MCAP file. It takes the frames :mod:`dob_hil.live.tap` writes to the pipe (``items``, a
+``Connection``; each the CDR message the log holds, :mod:`dob_hil.live.packing`) and logs each
+on its channel with the record's log time. The design and the run's metadata are served as parameters
 (``dob_hil.design``: the design JSON; ``dob_hil.run.<key>``: each run metadata value), which a
 viewer can read at any time.
 
@@ -18,60 +18,15 @@ message)``, and at the end ``("closed", {"served": n, "bad": n})``.
 from __future__ import annotations
 
 import signal
-import struct
 import time
 from collections.abc import Mapping
 from typing import Any
 
-from dob_hil.live.tap import KIND_EVENT, KIND_SAMPLE, KIND_TRUTH
-from dob_hil.log.schemas import (
-    CDR_HEADER,
-    CH_EVENT,
-    CH_SAMPLE,
-    CH_TRUTH,
-    LogLayout,
-    channel_specs,
-    encode_event_cdr,
-    struct_body_format,
-)
+from dob_hil.live.packing import KIND_EVENT, KIND_SAMPLE, KIND_TRUTH, unframe
+from dob_hil.log.schemas import CH_EVENT, CH_SAMPLE, CH_TRUTH, LogLayout, channel_specs
 
 LIVE_CHANNELS = (CH_SAMPLE, CH_TRUTH, CH_EVENT)
 MESSAGE_BACKLOG = 256  # per client; the SDK drops the oldest data message beyond it
-
-
-def _flatten(args: tuple[Any, ...]) -> list[Any]:
-    out: list[Any] = []
-    for a in args:
-        if isinstance(a, (tuple, list)):
-            out.extend(a)
-        else:
-            out.append(a)
-    return out
-
-
-class Packer:
-    """The log's CDR payload (encapsulation header included) of a forwarded item."""
-
-    def __init__(self, layout: LogLayout) -> None:
-        specs = {s.key: s for s in channel_specs(layout)}
-        self._structs: dict[str, struct.Struct] = {}
-        for kind, key in ((KIND_SAMPLE, CH_SAMPLE), (KIND_TRUTH, CH_TRUTH)):
-            fields = specs[key].fields
-            assert fields is not None
-            self._structs[kind] = struct.Struct("<" + struct_body_format(fields))
-
-    def pack(self, kind: str, args: tuple[Any, ...]) -> tuple[int, bytes]:
-        """(log time, payload); raises ValueError for an item that does not pack."""
-        if kind == KIND_EVENT:
-            time_ns, level, ev_kind, message, data_json = args
-            return int(time_ns), encode_event_cdr(int(time_ns), level, ev_kind, message, data_json)
-        s = self._structs.get(kind)
-        if s is None:
-            raise ValueError(f"unknown live item kind {kind!r}")
-        try:
-            return int(args[0]), CDR_HEADER + s.pack(*_flatten(args))
-        except (struct.error, TypeError, IndexError) as exc:
-            raise ValueError(f"live {kind} item does not pack: {exc}") from exc
 
 
 def parameters(design_json: str, run_meta: Mapping[str, str]) -> list[Any]:
@@ -114,7 +69,7 @@ def serve(
                 return [by_name[n] for n in param_names if n in by_name]
 
         ctx = foxglove.Context()
-        channels: dict[str, Any] = {}
+        channels: dict[int, Any] = {}
         kinds = {CH_SAMPLE: KIND_SAMPLE, CH_TRUTH: KIND_TRUTH, CH_EVENT: KIND_EVENT}
         for spec in channel_specs(layout):
             if spec.key in LIVE_CHANNELS:
@@ -137,17 +92,15 @@ def serve(
         status.put(("error", f"{type(exc).__name__}: {exc}"))
         return
     status.put(("ready", server.port))
-    packer = Packer(layout)
     served = bad = 0
     try:
         while True:
             try:
-                item = items.recv()
+                frame = items.recv_bytes()  # bytes only: nothing is deserialised here
             except EOFError:  # the run closed its end: it is over
                 break
-            kind, args = item
             try:
-                log_time_ns, payload = packer.pack(kind, args)
+                kind, log_time_ns, payload = unframe(frame)
             except ValueError:
                 bad += 1
                 continue

@@ -6,28 +6,22 @@ to the live-server process through a non-blocking pipe (:class:`LiveTap`). When 
 (the live process is behind) the item is dropped and counted; the loop never waits for the
 viewer. The MCAP log keeps every record.
 
-The items are the writer's own arguments (``("s", args)``, ``("t", args)``, ``("e", args)``);
-the live process packs them into the same CDR messages as the log (:mod:`dob_hil.live.server`),
-so the control thread only pays a counter per record and one pickle and ``write`` per forwarded
-item.
+A forwarded record is packed into the same CDR message the log holds (:mod:`dob_hil.live.packing`)
+and written as bytes, so the control thread pays a counter per record and one pack and one
+``write`` per forwarded record, and the live process deserialises nothing.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import pickle
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
+from dob_hil.live.packing import KIND_EVENT, KIND_SAMPLE, KIND_TRUTH, Packer
 from dob_hil.log import LogWriter
-
-KIND_SAMPLE = "s"
-KIND_TRUTH = "t"
-KIND_EVENT = "e"
-
 
 PIPE_ATOMIC_BYTES: Final = 4096  # PIPE_BUF on Linux: a write this size is never split
 _HEAD: Final = struct.Struct("!i")  # multiprocessing.Connection's message header
@@ -52,7 +46,7 @@ def decimation_for(period_ns: int, rate_hz: float) -> int:
 
 class LiveTap:
     """Writes items to a non-blocking pipe (``fd``, the sending end of a ``multiprocessing.Pipe``)
-    as ``Connection`` messages: a 4-byte length and the pickle, in one write of at most
+    as ``Connection`` messages: a 4-byte length and the frame, in one write of at most
     ``PIPE_BUF`` bytes, which the kernel either takes whole or refuses (``EAGAIN``: dropped and
     counted). No thread of ours is involved (a ``multiprocessing.Queue`` would wake its feeder
     thread, which takes the GIL from the loop, for every item)."""
@@ -65,13 +59,13 @@ class LiveTap:
         self.decimation = decimation
         self.stats = TapStats()
 
-    def put(self, item: tuple[str, tuple[Any, ...]]) -> None:
-        data = pickle.dumps(item, pickle.HIGHEST_PROTOCOL)
-        if len(data) + _HEAD.size > PIPE_ATOMIC_BYTES:
+    def put(self, frame: bytes) -> None:
+        """One frame (:mod:`dob_hil.live.packing`) as one ``Connection`` message, or a drop."""
+        if len(frame) + _HEAD.size > PIPE_ATOMIC_BYTES:
             self.stats.dropped += 1
             return
         try:
-            os.write(self._fd, _HEAD.pack(len(data)) + data)
+            os.write(self._fd, _HEAD.pack(len(frame)) + frame)
         except OSError:  # BlockingIOError: the pipe is full; BrokenPipeError: the server is gone
             self.stats.dropped += 1
         else:
@@ -93,6 +87,7 @@ class TappedLogWriter(LogWriter):
     def __init__(self, *args: Any, tap: LiveTap, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.tap = tap
+        self._live_frame = Packer(self.layout).frame
         self._live_every = tap.decimation
         self._live_sample_left = 1  # the first sample goes out at once
         self._live_truth_left = 1
@@ -105,7 +100,7 @@ class TappedLogWriter(LogWriter):
             self._live_sample_left = left
             return
         self._live_sample_left = self._live_every
-        self.tap.put((KIND_SAMPLE, args))
+        self._forward(KIND_SAMPLE, args)
 
     def truth(self, *args: Any) -> None:  # the 6 arguments of LogWriter.truth
         _log_truth(self, *args)
@@ -114,16 +109,23 @@ class TappedLogWriter(LogWriter):
             self._live_truth_left = left
             return
         self._live_truth_left = self._live_every
-        self.tap.put((KIND_TRUTH, args))
+        self._forward(KIND_TRUTH, args)
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
     ) -> None:
         super().event(time_ns, level, kind, message, data)
         self._live_last_event_ns = max(self._live_last_event_ns, int(time_ns))
-        self.tap.put(
-            (KIND_EVENT, (int(time_ns), level, kind, message, json.dumps(dict(data or {}), default=str)))
-        )
+        data_json = _cut(json.dumps(dict(data or {}), default=str))
+        self._forward(KIND_EVENT, (int(time_ns), level, kind, _cut(message), data_json))
+
+    def _forward(self, kind: int, args: tuple[Any, ...]) -> None:
+        try:
+            frame = self._live_frame(kind, args)
+        except ValueError:  # cannot happen for a record the log took; never the loop's problem
+            self.tap.stats.dropped += 1
+            return
+        self.tap.put(frame)
 
     def close(self, summary: Mapping[str, Any] | None = None, timeout_s: float = 60.0) -> None:
         """Note in the log how many live items were forwarded and dropped, then close it."""
