@@ -108,7 +108,7 @@ class LiveServer:
         reader.close()  # the child has its own copy: the writer's close is then its end of input
         kind, value = self._wait_start()
         if kind != "ready":
-            self._proc.join(STOP_TIMEOUT_S)
+            self._kill()
             raise LiveError(f"--live: cannot serve on {options.host}:{options.port}: {value}")
         self.port = int(value)
         if options.on_ready is not None:
@@ -144,12 +144,17 @@ class LiveServer:
             return
         self._closed = True
         self._writer.close()
-        try:
-            kind, value = self._status.get(timeout=STOP_TIMEOUT_S + self.options.linger_s)
+        deadline = time.monotonic() + STOP_TIMEOUT_S + self.options.linger_s
+        while time.monotonic() < deadline:  # a server that died mid-run is not waited for
+            try:
+                kind, value = self._status.get(timeout=0.2)
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    break
+                continue
             if kind == "closed":
                 self.closed_report = dict(value)
-        except queue.Empty:
-            pass
+                break
         self._proc.join(STOP_TIMEOUT_S)
         if self._proc.is_alive():
             self._proc.kill()
