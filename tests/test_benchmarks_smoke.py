@@ -17,7 +17,7 @@ import pytest
 BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
 SCRIPTS = sorted(BENCH_DIR.glob("bench_*.py"))
 SKIP_STATUS = 77
-REALTIME = {"bench_realtime.py", "bench_soak.py"}
+REALTIME = {"bench_realtime.py", "bench_soak.py", "bench_live.py"}
 
 
 def _params() -> list[object]:

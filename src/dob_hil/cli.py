@@ -119,6 +119,18 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
             help="no progress bar (drawn only on a terminal, after 0.5 s)",
         )
         p.add_argument("--json", action="store_true", help="print the summary as JSON (default: text)")
+        p.add_argument(
+            "--live",
+            nargs="?",
+            type=int,
+            const=8765,
+            metavar="PORT",
+            help="serve the run to Foxglove over WebSocket (default port 8765; 0: any free port)",
+        )
+        p.add_argument("--live-host", default="127.0.0.1", help="--live: address to bind (default 127.0.0.1)")
+        p.add_argument(
+            "--live-rate", type=float, default=100.0, help="--live: samples per second sent (default 100)"
+        )
     elif name == "demo":
         p.add_argument("--scenario", default="paper-step", help="scenario to run (default paper-step)")
         p.add_argument("--out", default="logs", help="folder for logs and plots")

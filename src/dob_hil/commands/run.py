@@ -65,6 +65,12 @@ def format_summary(s: dict[str, object]) -> str:
         "(step, limit, quantise, predict; bench_step.py times the step alone)",
         f"  log              {s['log_path']} (dropped records: {s['log_dropped_records']})",
     ]
+    if s.get("live"):
+        lv = s["live"]
+        lines.append(
+            f"  live view        port {lv['port']}: {lv['forwarded']} items sent, "  # type: ignore[index]
+            f"{lv['dropped']} dropped (live process behind)"  # type: ignore[index]
+        )
     if s["events"]:
         lines.append(f"  link events      {s['events']}")
     for msg in s["rt_refused"]:  # type: ignore[attr-defined]
@@ -87,6 +93,22 @@ def check_run_arguments(args: argparse.Namespace, config: Config) -> None:
         ensure_file_parent(Path(args.log), "--log")
     else:
         ensure_dir(config.run.log_dir, "run.log_dir")
+
+
+def _live_options(args: argparse.Namespace) -> object:
+    """``--live [PORT]``, ``--live-host``, ``--live-rate``; None without ``--live``."""
+    if getattr(args, "live", None) is None:
+        return None
+    import sys
+
+    from dob_hil.live.process import LiveOptions
+
+    def announce(host: str, port: int) -> None:
+        print(f"dob-hil run: live view on ws://{host}:{port} (Foxglove: Open connection)", file=sys.stderr)
+
+    options = LiveOptions(port=args.live, host=args.live_host, rate_hz=args.live_rate, on_ready=announce)
+    options.check()
+    return options
 
 
 def main(args: argparse.Namespace) -> int:
@@ -115,6 +137,7 @@ def main(args: argparse.Namespace) -> int:
             sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc
         ),
         progress=bar if bar.enabled else None,
+        live=_live_options(args),
     )
     try:
         summary = run_session(config, options)

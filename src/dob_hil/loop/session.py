@@ -8,6 +8,7 @@ the log is closed: a second SIGINT or SIGTERM while stopping is noted, not fatal
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import os
@@ -16,7 +17,7 @@ import sys
 import time
 import types
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -66,6 +67,7 @@ class RunOptions:
     bus_impl: str = "inprocess"
     # the simulated drive's plant ("truth"), when it differs from the design's (campaigns)
     sim_config: Config | None = None
+    live: Any = None  # dob_hil.live.process.LiveOptions: serve the run to Foxglove (--live)
 
 
 @dataclass
@@ -92,6 +94,7 @@ class RunSummary:
     events: dict[str, int]
     rt_applied: list[str]
     rt_refused: list[str]
+    live: dict[str, int] | None = None  # --live: items forwarded/dropped, port
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -252,9 +255,19 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     )
     design_json = design.to_json()
     flag = _StopFlag()
+    writer: Callable[..., LogWriter] = LogWriter
+    live_ctx: AbstractContextManager[Any] = nullcontext()
+    live = None
+    if options.live is not None:  # before the drive is enabled: a port that cannot serve stops here
+        from dob_hil.live.process import LiveServer
+        from dob_hil.live.tap import TappedLogWriter
+
+        live_ctx = live = LiveServer(options.live, layout, period_ns, design_json, run_meta)
+        writer = functools.partial(TappedLogWriter, tap=live.tap)
     with (
         _signals(flag),
-        LogWriter(
+        live_ctx,
+        writer(
             log_path,
             layout,
             metadata={"run": run_meta, "versions": versions_metadata()},
@@ -262,8 +275,11 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
             backpressure=mode == "lockstep",  # real time drops (counted) rather than wait
         ) as log,
     ):
-        return _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
-                             n_samples, dob_enabled, external_bus, flag)  # fmt: skip
+        summary = _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,
+                                n_samples, dob_enabled, external_bus, flag)  # fmt: skip
+    if live is not None:
+        summary.live = {**live.tap.stats.as_dict(), "port": live.port}
+    return summary
 
 
 def _rt_settings(config: Config, options: RunOptions) -> RtSettings:
