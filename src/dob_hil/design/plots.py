@@ -68,12 +68,12 @@ def _sensitivity(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
            title=f"{d.name}: S and T at the plant output (to Nyquist, {nyq:.0f} Hz)")  # fmt: skip
     ax.set_xlim(f[0], nyq)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     axn.set(xlabel="frequency [Hz]", ylabel=f"|u / n| x 1 count [A]{tag}",
             title="noise to current (one encoder count)")  # fmt: skip
     axn.set_xlim(f[0], nyq)
     axn.grid(True, which="both", alpha=0.3)
-    axn.legend(fontsize=8, loc="upper left")
+    axn.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     return _save(fig, out_dir / "sensitivity.png", plt)
 
 
@@ -99,7 +99,7 @@ def _disturbance(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     )
     ax.set_xlim(f[0], 0.5e9 / d.period_ns)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     return _save(fig, out_dir / "disturbance.png", plt)
 
 
@@ -113,10 +113,12 @@ def _dob_filter(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     ax.axhline(float(_db(q1)) - 3.0, color="0.5", ls=":", lw=0.8, label="Q(1) - 3 dB")
     ax.set(ylabel="|Q| [dB]", title=f"{d.name}: disturbance-to-estimate filter Q(z) (w -> -u_dist; not T)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     if d.n_inputs == 1:
         axp.semilogx(f, np.degrees(np.unwrap(np.angle(a.Q[:, 0, 0]))), "b-")
-    axp.set(xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "(MIMO: no phase)")
+    axp.set(
+        xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "(MIMO: no phase) [deg]"
+    )
     axp.set_xlim(f[0], 0.5e9 / d.period_ns)
     axp.grid(True, which="both", alpha=0.3)
     return _save(fig, out_dir / "dob_filter.png", plt)
@@ -134,12 +136,12 @@ def _locus(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     ax.axvline(dob.k_min_radius, color="m", ls=":", label=f"fastest k = {dob.k_min_radius:.4g}")
     unit = "DOB loop DC gain" if dob.direction_kind == "pinv(H(1))" else "scale of Kdist Lc"
     ax.set(
-        xlabel=f"k ({unit}; Kdist Lc = k {dob.direction_kind})",
-        ylabel="|eig(Phi - Phi Lc C - Gam Kdist Lc C)|",
+        xlabel=f"k [-] ({unit}; Kdist Lc = k {dob.direction_kind})",
+        ylabel="|eig(Phi - Phi Lc C - Gam Kdist Lc C)| [-]",
         title=f"{d.name}: DOB gain locus",
     )
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     return _save(fig, out_dir / "dob_locus.png", plt)
 
 
@@ -168,7 +170,7 @@ def _ltr(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     )
     ax.set_xlim(f[0], 0.5e9 / d.period_ns)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right", ncol=2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     return _save(fig, out_dir / "ltr.png", plt)
 
 
@@ -212,6 +214,6 @@ def write_tradeoff_plot(config: Config, result: DesignResult, out_dir: Path) -> 
     )
     ax.set_yscale("log")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     out_dir.mkdir(parents=True, exist_ok=True)
     return _save(fig, out_dir / "tradeoff.png", plt)
