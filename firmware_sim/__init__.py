@@ -9,9 +9,10 @@ threads). Runs in-process on any python-can bus (``virtual`` in tests) or standa
 
 from __future__ import annotations
 
+from firmware_sim.clocked import ClockKind
 from firmware_sim.core import DriveStats, FrameResult
 from firmware_sim.disturbance import Disturbance
-from firmware_sim.drive import ClockKind, SimulatedDrive
+from firmware_sim.drive import SimulatedDrive
 from firmware_sim.truth import GroundTruth, UdpTruthSender, decode_truth, encode_truth
 
 __all__ = [

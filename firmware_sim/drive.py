@@ -21,23 +21,18 @@ The drive does not own the bus: :meth:`close` stops the drive, the caller shuts 
 
 from __future__ import annotations
 
-import contextlib
-from types import TracebackType
-from typing import Literal
-
 import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
+from firmware_sim.clocked import ClockedDrive, ClockKind
 from firmware_sim.core import DriveStats, TruthSink
 from firmware_sim.lockstep import LockstepClock
 from firmware_sim.realtime import RealtimeClock
 
-ClockKind = Literal["lockstep", "realtime"]
 
-
-class SimulatedDrive:
+class SimulatedDrive(ClockedDrive[LockstepClock, RealtimeClock]):
     def __init__(
         self,
         bus: can.BusABC,
@@ -53,8 +48,6 @@ class SimulatedDrive:
         (:mod:`firmware_sim.behaviour`); default the reference drive."""
         self.config = config
         self.clock: ClockKind = clock
-        self._lockstep: LockstepClock | None = None
-        self._realtime: RealtimeClock | None = None
         if clock == "lockstep":
             self._lockstep = LockstepClock(bus, config, truth_sink, behaviour)
         elif clock == "realtime":
@@ -63,62 +56,7 @@ class SimulatedDrive:
             raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
         self._closed = False
 
-    # --- lockstep ------------------------------------------------------------------------------
-    def service(self) -> int:
-        """Lockstep: act on every frame pending on the bus; returns how many were read."""
-        return self._need_lockstep("service").service()
-
-    def advance_period(self) -> None:
-        """Lockstep: one period without a command (the watchdog counts it), then FEEDBACK."""
-        self._need_lockstep("advance_period").advance_period()
-
-    def _need_lockstep(self, what: str) -> LockstepClock:
-        if self._lockstep is None:
-            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
-        return self._lockstep
-
-    # --- real time -----------------------------------------------------------------------------
-    def start(self) -> None:
-        """Real time: start the timer and receive threads (t = 0 now). Nothing in lockstep."""
-        if self._realtime is not None:
-            self._realtime.start()
-
-    def stop(self) -> None:
-        """Real time: stop the threads; re-raise an exception one of them hit. Safe to call twice."""
-        if self._realtime is not None:
-            self._realtime.stop()
-
-    def check(self) -> None:
-        """Real time: re-raise the exception a drive thread stopped on, if any."""
-        if self._realtime is not None:
-            self._realtime.check()
-
-    def close(self) -> None:
-        """Stop the drive (safe to call twice). The bus stays open: it belongs to the caller."""
-        if self._closed:
-            return
-        self._closed = True
-        self.stop()
-
-    def __enter__(self) -> SimulatedDrive:
-        self.start()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-            return
-        with contextlib.suppress(Exception):
-            self.close()  # the exception already propagating is the one to see
-
     # --- read-out ------------------------------------------------------------------------------
-    @property
-    def running(self) -> bool:
-        """Real time: the threads are running (started, not stopped, no error). Lockstep: False."""
-        return self._realtime is not None and self._realtime.running
-
     @property
     def state(self) -> DriveState:
         if self._realtime is not None:

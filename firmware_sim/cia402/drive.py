@@ -17,10 +17,7 @@ The drive does not own the bus: :meth:`close` stops the drive, the caller shuts 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-from types import TracebackType
-from typing import Literal
 
 import can
 
@@ -29,11 +26,10 @@ from firmware_sim.cia402.core import Cia402Core, Cia402Stats, TruthSink
 from firmware_sim.cia402.lockstep import Cia402Lockstep
 from firmware_sim.cia402.power import PowerState
 from firmware_sim.cia402.realtime import Cia402Realtime
+from firmware_sim.clocked import ClockedDrive, ClockKind
 
-ClockKind = Literal["lockstep", "realtime"]
 
-
-class SimulatedCia402Drive:
+class SimulatedCia402Drive(ClockedDrive[Cia402Lockstep, Cia402Realtime]):
     def __init__(
         self,
         bus: can.BusABC,
@@ -44,8 +40,6 @@ class SimulatedCia402Drive:
     ) -> None:
         self.config = config
         self.clock: ClockKind = clock
-        self._lockstep: Cia402Lockstep | None = None
-        self._realtime: Cia402Realtime | None = None
         if clock == "lockstep":
             self._lockstep = Cia402Lockstep(bus, config, truth_sink)
             self._core, self._lock = self._lockstep.core, self._lockstep.lock
@@ -56,63 +50,11 @@ class SimulatedCia402Drive:
             raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
         self._closed = False
 
-    # --- lockstep ------------------------------------------------------------------------------
-    def service(self) -> int:
-        """Lockstep: act on every frame pending on the bus (never blocks); returns how many were read."""
-        return self._need_lockstep("service").service()
-
-    def advance_period(self) -> None:
-        """Lockstep: one period passes without a SYNC (the SYNC-loss watchdog counts it)."""
-        self._need_lockstep("advance_period").advance_period()
-
-    def _need_lockstep(self, what: str) -> Cia402Lockstep:
-        if self._lockstep is None:
-            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
-        return self._lockstep
-
-    # --- real time -----------------------------------------------------------------------------
-    def start(self) -> None:
-        """Real time: boot (boot-up frame) and start the receive thread. Nothing in lockstep."""
-        if self._realtime is not None:
-            self._realtime.start()
-
-    def stop(self) -> None:
-        """Real time: stop the thread; re-raise an exception it hit. Safe to call twice."""
-        if self._realtime is not None:
-            self._realtime.stop()
-
-    def check(self) -> None:
-        if self._realtime is not None:
-            self._realtime.check()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self.stop()
-
-    def __enter__(self) -> SimulatedCia402Drive:
-        self.start()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-            return
-        with contextlib.suppress(Exception):
-            self.close()
-
     # --- read-out ------------------------------------------------------------------------------
     @property
     def core(self) -> Cia402Core:
         """The firmware (tests; in real time, read it under :attr:`lock` or use the properties)."""
         return self._core
-
-    @property
-    def running(self) -> bool:
-        return self._realtime is not None and self._realtime.running
 
     @property
     def state(self) -> PowerState:

@@ -6,21 +6,16 @@ drives it like the native simulated drive. The drive does not own the bus.
 
 from __future__ import annotations
 
-import contextlib
-from types import TracebackType
-from typing import Literal
-
 import can
 
 from dob_hil.config import Config
 from dob_hil.link.odrive.codec import AxisState
+from firmware_sim.clocked import ClockedDrive, ClockKind
 from firmware_sim.odrive.clocks import OdriveLockstep, OdriveRealtime
 from firmware_sim.odrive.core import OdriveStats, TruthSink
 
-ClockKind = Literal["lockstep", "realtime"]
 
-
-class SimulatedOdrive:
+class SimulatedOdrive(ClockedDrive[OdriveLockstep, OdriveRealtime]):
     def __init__(
         self,
         bus: can.BusABC,
@@ -32,8 +27,6 @@ class SimulatedOdrive:
     ) -> None:
         self.config = config
         self.clock: ClockKind = clock
-        self._lockstep: OdriveLockstep | None = None
-        self._realtime: OdriveRealtime | None = None
         if clock == "lockstep":
             self._lockstep = OdriveLockstep(bus, config, truth_sink)
         elif clock == "realtime":
@@ -42,55 +35,7 @@ class SimulatedOdrive:
             raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
         self._closed = False
 
-    # --- lockstep ------------------------------------------------------------------------------
-    def service(self) -> int:
-        return self._need_lockstep("service").service()
-
-    def advance_period(self) -> None:
-        self._need_lockstep("advance_period").advance_period()
-
-    def _need_lockstep(self, what: str) -> OdriveLockstep:
-        if self._lockstep is None:
-            raise RuntimeError(f"{what}() is for the lockstep clock; this drive runs in real time")
-        return self._lockstep
-
-    # --- real time -----------------------------------------------------------------------------
-    def start(self) -> None:
-        if self._realtime is not None:
-            self._realtime.start()
-
-    def stop(self) -> None:
-        if self._realtime is not None:
-            self._realtime.stop()
-
-    def check(self) -> None:
-        if self._realtime is not None:
-            self._realtime.check()
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self.stop()
-
-    def __enter__(self) -> SimulatedOdrive:
-        self.start()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-            return
-        with contextlib.suppress(Exception):
-            self.close()
-
     # --- read-out ------------------------------------------------------------------------------
-    @property
-    def running(self) -> bool:
-        return self._realtime is not None and self._realtime.running
-
     @property
     def enabled(self) -> bool:
         """The axis is in CLOSED_LOOP_CONTROL (its power stage applies current)."""
