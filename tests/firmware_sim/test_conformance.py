@@ -23,11 +23,13 @@ import can
 import pytest
 from fs_support import make_config, toml_text
 
-from dob_hil.link.protocol import PROTOCOL_VERSION
+from dob_hil.link.protocol import PROTOCOL_VERSION, DriveState, FrameKind, HeartbeatFrame
 from firmware_sim import SimulatedDrive
 from firmware_sim.behaviour import VARIANTS
 from firmware_sim.conformance import RULES, KitOptions, run_conformance
 from firmware_sim.conformance.__main__ import main as kit_main
+from firmware_sim.conformance.probe import Rx
+from firmware_sim.conformance.rules import _Book, _Session
 from firmware_sim.process import standalone_drive
 
 WATCHDOG_PERIODS = 500
@@ -133,3 +135,39 @@ def test_kit_command_against_a_standalone_drive(tmp_path: Path) -> None:
     assert report["protocol_version"] == PROTOCOL_VERSION and report["node_id"] == node
     assert {r["rule"]: r["status"] for r in report["results"]} == dict.fromkeys(RULES, "pass")
     assert proc.exit_status == 0, proc.stderr_text
+
+
+def _heartbeats(*t_ms: int) -> list[Rx]:
+    frame = HeartbeatFrame(state=DriveState.DISABLED, version=PROTOCOL_VERSION)
+    return [
+        Rx(index=i, t_ns=t * 1_000_000, kind=FrameKind.HEARTBEAT, data=b"", frame=frame)
+        for i, t in enumerate(t_ms)
+    ]
+
+
+@pytest.mark.parametrize(
+    ("windows", "passed", "observed"),
+    [
+        ([[0, 100, 200]], True, 1),
+        ([[0, 350, 450], [0, 100, 200]], True, 2),  # one stall of the observer is forgiven
+        ([[0, 350, 450]] * 3, False, 3),  # a gap in every window is the drive's
+        ([[0]], False, 1),  # silent for a whole step: no second window
+    ],
+)
+def test_h1_forgives_one_stalled_window_but_not_a_slow_drive(
+    windows: list[list[int]], passed: bool, observed: int
+) -> None:
+    session = _Session.__new__(_Session)
+    session.o = KitOptions()
+    session.book = _Book()
+    calls = iter(windows)
+    seen: list[int] = []
+
+    def window() -> tuple[list[Rx], list[Rx]]:
+        seen.append(1)
+        return _heartbeats(*next(calls)), []
+
+    session._listen_window = window  # type: ignore[method-assign]
+    session.listen()
+    assert (session.book.results["H1"].status == "pass") is passed
+    assert len(seen) == observed
