@@ -1,7 +1,7 @@
 """Analysis, replay and export of a 2x2 log, per output and per input.
 
 The log is the coupled two-axis plant in closed loop with the project's controller, simulated and
-written in :mod:`mimo_support`; every per-axis metric is checked against a numpy computation on
+written in :mod:`mimo_log_support`; every per-axis metric is checked against a numpy computation on
 the simulated arrays themselves (not on what analysis read back)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mimo_support import MIMO_TEXT, MimoRun, write_mimo_log
+from mimo_log_support import MIMO_TEXT, MimoRun, write_mimo_log
 from test_plots import check_figure
 
 from dob_hil import cli

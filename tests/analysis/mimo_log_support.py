@@ -131,7 +131,7 @@ def write_mimo_log(path: Path, *, dob: bool, text: str = MIMO_TEXT) -> MimoRun:
     layout = LogLayout(n_states=N, n_inputs=m, n_outputs=p, n_plant_states=n)
     run = run_metadata(
         mode="lockstep",
-        bus="none (synthetic: tests/analysis/mimo_support.py)",
+        bus="none (synthetic: tests/analysis/mimo_log_support.py)",
         period_ns=period_ns,
         layout=layout,
         planned_samples=str(n_samples),
