@@ -2,7 +2,8 @@
 
 * ``sensitivity.png``: left, |S| and |T| at the plant output in dB up to Nyquist, DOB on (solid) and
   off (dashed), peaks and the configured disturbance frequencies marked (the paper's Figure 5;
-  sigma_max for MIMO loops); right, noise to current: sigma_max(K S) times one encoder count [A].
+  sigma_max for MIMO loops); right, noise to current: |K S| times one encoder count [A] (for several
+  inputs one curve per input: the 2-norm of row i of K S, the worst direction of the noise).
 * ``disturbance.png``: input disturbance w -> output y, with and without the DOB.
 * ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase.
 * ``dob_locus.png``: eigenvalue magnitudes of Phi - Phi Lc C - Gam Kdist Lc C along the DOB gain
@@ -50,12 +51,20 @@ def _sensitivity(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     d = a.result.design
     f = a.frequency_hz
     nyq = 0.5e9 / d.period_ns
-    fig, (ax, axn) = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"wspace": 0.25})
+    wide = bool(tag)  # MIMO: longer legend entries need room between the panels
+    fig, (ax, axn) = plt.subplots(1, 2, figsize=(16 if wide else 13, 4.5),
+                                  gridspec_kw={"wspace": 0.55 if wide else 0.25})  # fmt: skip
     for s, style, label in ((a.dob_on, "-", "DOB on"), (a.dob_off, "--", "DOB off")):
         S, T = max_singular_value(s.response.S), max_singular_value(s.response.T)
         ax.semilogx(f, _db(S), "b" + style, label=f"S, {label}{tag}")
         ax.semilogx(f, _db(T), "r" + style, label=f"T, {label}{tag}")
-        axn.semilogx(f, s.noise_to_current, "k" + style, label=f"{label}: RMS {max(s.noise_rms_A):.3g} A")
+        if d.n_inputs == 1:
+            axn.semilogx(f, s.noise_to_current, "k" + style, label=f"{label}: RMS {max(s.noise_rms_A):.3g} A")
+            continue
+        for i in range(d.n_inputs):  # one curve per input: row i of K S, worst noise direction
+            name = d.input_names[i] if i < len(d.input_names) else str(i + 1)
+            axn.semilogx(f, s.noise_to_current_per_input[:, i], style, color=f"C{i}",
+                         label=f"input {i + 1} ({name}), {label}: RMS {s.noise_rms_A[i]:.3g} A")  # fmt: skip
     for pk, color, name in ((a.dob_on.peak_S, "b", "|S|"), (a.dob_on.peak_T, "r", "|T|")):
         ax.plot([pk.frequency_hz], [_db(pk.value)], color + "o")
         ax.annotate(f"peak {name} {pk.value:.3g}", (pk.frequency_hz, float(_db(pk.value))), fontsize=8,
@@ -69,7 +78,8 @@ def _sensitivity(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     ax.set_xlim(f[0], nyq)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
-    axn.set(xlabel="frequency [Hz]", ylabel=f"|u / n| x 1 count [A]{tag}",
+    ylabel = "|u / n| x 1 count [A]" if d.n_inputs == 1 else "||row i of K S|| x 1 count [A]"
+    axn.set(xlabel="frequency [Hz]", ylabel=ylabel,
             title="noise to current (one encoder count)")  # fmt: skip
     axn.set_xlim(f[0], nyq)
     axn.grid(True, which="both", alpha=0.3)
