@@ -393,6 +393,9 @@ def _optimize_dict(res: DesignResult) -> dict[str, Any] | None:
             "disk_gain_margin_dB": _finite(m.disk_gain_margin_db),
             "disk_phase_margin_deg": m.disk_phase_margin_deg,
             "delay_margin_s": _finite(m.delay_margin_s),
+            "multiloop_disk_margin_plant_input": (
+                None if m.multiloop_input is None else m.multiloop_input.as_dict()
+            ),
         }
 
     return {

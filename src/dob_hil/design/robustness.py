@@ -57,6 +57,9 @@ ROBUSTNESS_BOUNDS: dict[str, float] = {
     "min_disk_phase_margin_deg": 30.0,
 }
 LIGHT_DAMPING = 0.1
+# a multiloop disk margin within this fraction of its bound meets it (the optimiser bounds it on a
+# coarser grid than the report's refined one)
+DISK_BOUND_TOLERANCE = 1e-3
 NEGATIVE_REAL_MIN_MAGNITUDE = 0.3
 
 
@@ -207,6 +210,7 @@ class Merit:
     phase_margin_deg: float
     delay_margin_s: float
     closed_loop_radius: float
+    multiloop_input: MultiloopDiskMargin | None = None  # evaluate(multiloop=True) only
 
     @property
     def worst_rejection(self) -> float:
@@ -214,11 +218,19 @@ class Merit:
 
     @property
     def disk_gain_margin_db(self) -> float:
-        return min(d.gain_margin_db for d in self.disk_input + self.disk_output)
+        """The smallest balanced disk gain margin: loop at a time at the plant input and output, and
+        the multiloop one at the plant input when computed."""
+        values = [d.gain_margin_db for d in self.disk_input + self.disk_output]
+        if self.multiloop_input is not None:
+            values.append(self.multiloop_input.gain_margin_db)
+        return min(values)
 
     @property
     def disk_phase_margin_deg(self) -> float:
-        return min(d.phase_margin_deg for d in self.disk_input + self.disk_output)
+        values = [d.phase_margin_deg for d in self.disk_input + self.disk_output]
+        if self.multiloop_input is not None:
+            values.append(self.multiloop_input.phase_margin_deg)
+        return min(values)
 
 
 def _diag(F: CMatrix, i: int) -> npt.NDArray[np.complex128]:
@@ -238,8 +250,10 @@ def evaluate(
     omega_rad_s: FloatArray,
     band_hz: FloatArray,
     count: float,
+    multiloop: bool = False,
 ) -> Merit:
-    """All figures of merit on the grid ``omega_rad_s`` (ascending, ending at Nyquist)."""
+    """All figures of merit on the grid ``omega_rad_s`` (ascending, ending at Nyquist); with
+    ``multiloop`` also the multiloop disk margin at the plant input (on the grid, not refined)."""
     r: LoopResponse = loop_response(
         Phi, Gam, Gam_w, C, Lc=Lc, Kc=Kc, Kdist=Kdist, period_s=period_s, omega_rad_s=omega_rad_s
     )
@@ -274,6 +288,7 @@ def evaluate(
         phase_margin_deg=min(pms, key=abs),
         delay_margin_s=min(dms),
         closed_loop_radius=radius,
+        multiloop_input=multiloop_disk_margin(r.Si, w, where="plant input") if multiloop else None,
     )
 
 
@@ -320,12 +335,13 @@ def multiloop_warnings(m: MultiloopDiskMargin, bounds: DiskBounds, which: str) -
     out = []
     src = "design.optimize.min_disk_" if bounds.configured else "default "
     tail = f" at {m.at_hz:.3g} Hz (alpha {m.alpha:.3g}; every input perturbed at once)"
-    if bounds.gain_margin_db is not None and m.gain_margin_db < bounds.gain_margin_db:
+    tol = 1.0 - DISK_BOUND_TOLERANCE
+    if bounds.gain_margin_db is not None and m.gain_margin_db < bounds.gain_margin_db * tol:
         out.append(
             f"robustness {which}: multiloop disk gain margin at the plant input +/-{m.gain_margin_db:.3g} dB "
             f"< {bounds.gain_margin_db:g} dB ({src}gain_margin_dB){tail}"
         )
-    if bounds.phase_margin_deg is not None and m.phase_margin_deg < bounds.phase_margin_deg:
+    if bounds.phase_margin_deg is not None and m.phase_margin_deg < bounds.phase_margin_deg * tol:
         out.append(
             f"robustness {which}: multiloop disk phase margin at the plant input +/-{m.phase_margin_deg:.3g} "
             f"deg < {bounds.phase_margin_deg:g} deg ({src}phase_margin_deg){tail}"
