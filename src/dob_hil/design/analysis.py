@@ -30,7 +30,7 @@ from dob_hil.design.build import DesignResult
 from dob_hil.design.dob import METHOD_AIMS, disturbance_estimate_response, locus_magnitudes
 from dob_hil.design.linalg import CMatrix, Matrix, frequency_grid_hz, max_singular_value, unit_circle_points
 from dob_hil.design.loops import LoopResponse, design_loop_response, loop_at_a_time
-from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, ltr_report
+from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, error_definition, ltr_report
 from dob_hil.design.margins import Margins, loop_margins
 from dob_hil.design.multiloop import MultiloopDiskMargin, multiloop_disk_margin
 from dob_hil.design.robustness import (
@@ -360,6 +360,7 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
             "target": "Gtl = C (zI - Phi)^-1 Phi Lc (eq. 8), loop broken at the plant output, DOB off",
             "R2": a.ltr.R2.tolist(),
             "band_Hz": list(a.ltr.band_hz),
+            "error": error_definition(d.n_outputs),
             "recovered_at_q": a.ltr.recovered_at_q,
             "obstructions": list(a.ltr.obstructions),
             "notes": list(a.ltr.notes),

@@ -235,7 +235,7 @@ def format_report(r: dict[str, Any]) -> str:
     lo, hi = ltr["band_Hz"]
     lines += ["", f"loop transfer recovery: {ltr['target']}"]
     lines.append(
-        f"  error = sigma_max(Lo_q - Gtl) / sigma_max(Gtl); band {lo:.3g}-{hi:.3g} Hz "
+        f"  error = {ltr.get('error', 'sigma_max(Lo_q - Gtl) / sigma_max(Gtl)')}; band {lo:.3g}-{hi:.3g} Hz "
         "(design.feedback.ltr_band_hz); recovered = band error <= 10 %"
     )
     lines.append(
