@@ -355,3 +355,40 @@ def test_optimize_bounds_the_multiloop_disk_margin_of_a_mimo_loop() -> None:
     multi = report["loop_dob_on"]["multiloop_disk_margin_plant_input"]
     assert multi["gain_margin_dB"] >= 9.0 * (1 - 1e-3)
     assert report["optimize"]["result"]["multiloop_disk_margin_plant_input"]["gain_margin_dB"] >= 9.0 - 1e-6
+
+
+def test_mimo_design_plots_pass_the_plot_check(
+    mimo_config: Config, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The 2x2 design's PNGs pass the analyze plots' check (labels with units, legends covering no
+    line): the per-input noise curves and the longer MIMO legends included."""
+    import importlib.util
+
+    import matplotlib.pyplot as plt
+
+    from dob_hil.design import plots as design_plots
+
+    spec = importlib.util.spec_from_file_location(
+        "_plot_checks", Path(__file__).resolve().parents[1] / "analysis" / "test_plots.py"
+    )
+    assert spec is not None and spec.loader is not None
+    checks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(checks)
+    kept: dict[str, object] = {}
+
+    def keep(fig: object, out: Path, plt_: object) -> Path:
+        kept[out.name] = fig
+        return out
+
+    monkeypatch.setattr(design_plots, "_save", keep)
+    result = _quiet(mimo_config)
+    design_plots.write_plots(analyze(result, mimo_config), tmp_path)  # type: ignore[arg-type]
+    try:
+        assert set(kept) >= {"sensitivity.png", "ltr.png"}
+        for name, fig in kept.items():
+            checks.check_figure(name, fig)
+        labels = [ln.get_label() for ax in kept["sensitivity.png"].axes for ln in ax.get_lines()]  # type: ignore[attr-defined]
+        assert any(lab.startswith("input 2 (i2), DOB on") for lab in labels)
+    finally:
+        for fig in kept.values():
+            plt.close(fig)  # type: ignore[arg-type]

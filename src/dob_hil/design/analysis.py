@@ -72,6 +72,7 @@ class LoopSummary:
     peak_disturbance: Peak
     low_frequency_disturbance_gain: float
     disturbance_at: tuple[tuple[float, float], ...]  # (frequency Hz, ||y/w|| for the configured input)
+    disturbance_at_per_output: tuple[tuple[int, tuple[float, ...]], ...]  # (input index, |y_j / w|)
     noise_rms_A: tuple[float, ...]  # per input, one count RMS of white encoder noise
     noise_peak_A: Peak  # max over frequency of sigma_max(K S) * one count
     noise_to_current: FloatArray  # sigma_max(K S) * one count on the grid [A per count]
@@ -152,11 +153,13 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
     dms = [classical_margins(1.0 / r.Si[:, i, i] - 1.0, w)[2] for i in range(m_)]
     Kd = design.Kdist if dob_enabled else np.zeros_like(design.Kdist)
     dist_at: list[tuple[float, float]] = []
+    dist_rows: list[tuple[int, tuple[float, ...]]] = []
     for dcfg in config.sim.disturbances:
         if dcfg.kind == "sine" and dcfg.frequency_hz > 0.0:
             x = np.array([2.0 * math.pi * dcfg.frequency_hz])
             col = resp(x).disturbance[0, :, dcfg.input_index]
             dist_at.append((dcfg.frequency_hz, float(np.linalg.norm(col))))
+            dist_rows.append((dcfg.input_index, tuple(float(v) for v in np.abs(col))))
     return LoopSummary(
         response=r,
         margins_input=m_in,
@@ -167,6 +170,7 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
         peak_disturbance=_peak(max_singular_value(r.disturbance), w, sig("disturbance")),
         low_frequency_disturbance_gain=float(max_singular_value(r.disturbance)[0]),
         disturbance_at=tuple(dist_at),
+        disturbance_at_per_output=tuple(dist_rows),
         noise_rms_A=tuple(
             float(v)
             for v in noise_rms(
@@ -281,7 +285,12 @@ def _loop_dict(s: LoopSummary, period_s: float) -> dict[str, Any]:
         "disturbance_to_output": {
             "peak": s.peak_disturbance.as_dict(),
             "lowest_grid_frequency_gain": s.low_frequency_disturbance_gain,
-            "at_configured_disturbances": [{"frequency_Hz": fr, "gain": g} for fr, g in s.disturbance_at],
+            "at_configured_disturbances": [
+                {"frequency_Hz": fr, "gain": g, "input_index": i, "gain_per_output": list(per_output)}
+                for (fr, g), (i, per_output) in zip(
+                    s.disturbance_at, s.disturbance_at_per_output, strict=True
+                )
+            ],
         },
     }
 

@@ -8,7 +8,8 @@
 * ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase.
 * ``dob_locus.png``: eigenvalue magnitudes of Phi - Phi Lc C - Gam Kdist Lc C along the DOB gain
   direction, with the design, the fastest gain and the stability limit marked.
-* ``ltr.png``: the target loop Gtl and the loops Lo_q of the LTR sequence of q, with the error band.
+* ``ltr.png``: the target loop Gtl and the loops Lo_q of the LTR sequence of q, with the error band
+  (several outputs: sigma_max of each loop, and the target's sigma_min too).
 * ``tradeoff.png`` (``dob-hil design --optimize``): best worst-case rejection in the band against the
   RMS noise-to-current bound, from :func:`dob_hil.design.optimize.tradeoff_curve`.
 """
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dob_hil.design.analysis import DesignAnalysis
-from dob_hil.design.linalg import max_singular_value
+from dob_hil.design.linalg import max_singular_value, min_singular_value
 
 if TYPE_CHECKING:
     from dob_hil.config import Config
@@ -160,6 +161,8 @@ def _ltr(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     f = a.frequency_hz
     fig, ax = plt.subplots(figsize=(8, 5))
     ax.semilogx(f, _db(max_singular_value(a.ltr.Gtl)), "k-", lw=2.0, label="target Gtl (eq. 8)")
+    if d.n_outputs > 1:  # the weak direction, where MIMO recovery is decided (ltr: Gtl^-1 error)
+        ax.semilogx(f, _db(min_singular_value(a.ltr.Gtl)), "k:", lw=2.0, label="target Gtl, sigma_min")
     cmap = plt.get_cmap("viridis")
     q_rows = [r for r in a.ltr.rows if r.q is not None]
     for i, row in enumerate(q_rows):
@@ -175,7 +178,9 @@ def _ltr(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     ax.axvspan(lo, hi, color="0.9", zorder=0, label="error band")
     ax.set(
         xlabel="frequency [Hz]",
-        ylabel="sigma_max of the loop at the plant output [dB]",
+        ylabel="sigma_max of the loop at the plant output [dB]"
+        if d.n_outputs == 1
+        else "singular value [dB]",
         title=f"{d.name}: loop transfer recovery (Lo = P K, DOB off)",
     )
     ax.set_xlim(f[0], 0.5e9 / d.period_ns)

@@ -104,20 +104,19 @@ def _loop_mimo(title: str, loop: dict[str, Any], names: tuple[list[str], list[st
         lines.append(f"      {_channel('input', i, ins):18s} RMS {rms:.4g} A, peak {pk:.4g} A at {at:.0f} Hz")
     lines.append(f"      {'all inputs':18s} peak sigma_max(K S) {nz['peak_A_per_count']:.4g} A at "
                  f"{nz['peak_at_Hz']:.0f} Hz")  # fmt: skip
-    lines += _disturbance_lines(loop["disturbance_to_output"], "||y / w||")
-    return lines
-
-
-def _disturbance_lines(dist: dict[str, Any], what: str) -> list[str]:
+    dist = loop["disturbance_to_output"]
     pk = dist["peak"]
-    lines = [
-        f"    w -> y: peak {pk['value']:.4g} at {pk['at_Hz']:.3g} Hz, at the lowest grid frequency "
-        f"{dist['lowest_grid_frequency_gain']:.4g}"
-    ]
+    lines.append(
+        f"    w -> y: peak sigma_max {pk['value']:.4g} at {pk['at_Hz']:.3g} Hz, at the lowest grid "
+        f"frequency {dist['lowest_grid_frequency_gain']:.4g}"
+    )
     for item in dist["at_configured_disturbances"]:
+        per = ", ".join(
+            f"{_channel('output', j, outs)} {g:.4g}" for j, g in enumerate(item["gain_per_output"])
+        )
         lines.append(
-            f"    w -> y at {item['frequency_Hz']:g} Hz (configured disturbance): {item['gain']:.4g}"
-            + ("" if what == "|y / w|" else f" ({what}, its input)")
+            f"    w -> y at {item['frequency_Hz']:g} Hz (configured disturbance on "
+            f"{_channel('input', item['input_index'], ins)}): ||y / w|| {item['gain']:.4g}; {per}"
         )
     return lines
 
