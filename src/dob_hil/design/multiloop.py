@@ -1,20 +1,23 @@
 """Multiloop (simultaneous) balanced disk margins of a MIMO loop, as MATLAB's ``diskmargin(L)``.
 
 Break the loop at m channels (the plant input: the loop Li = K P of ``loops``, negative feedback,
-with the run-time controller K -- current estimator, state feedback and the DOB's u_dist) and let
-every channel i be multiplied at the same time by its own, independent balanced (skew 0) disk factor
+with the run-time controller K -- current estimator, state feedback and the DOB's u_dist, u = -K y;
+or the plant output: Lo = P K) and let every channel i be multiplied at the same time by its own,
+independent balanced (skew 0) disk factor
 
     f_i = (1 + delta_i / 2) / (1 - delta_i / 2),   delta_i complex, |delta_i| < alpha.
 
 With F = (I + L)^-1 the sensitivity at the breaking point, the closed loop stays stable for every
-such perturbation iff alpha * mu_Delta(F(e^{jw}) - I/2) < 1 at every frequency, where mu_Delta is the
+such perturbation iff alpha * mu_Delta(F(e^{jw}) - I/2) <= 1 at every frequency, where mu_Delta is the
 structured singular value for a diagonal complex Delta = diag(delta_1..delta_m), and
 F - I/2 = (S - T)/2 is the balanced sensitivity. Hence the multiloop disk margin
 
-    alpha_max = 1 / max_w mu_Delta(F - I/2),
+    alpha_max = 1 / max_w mu_Delta(F - I/2).
 
-and its disk gain margin is +/- 20 log10((1 + alpha/2) / (1 - alpha/2)) dB (every channel's gain may
-change by up to that factor at once), its disk phase margin +/- 2 atan(alpha/2).
+Its disk gain margin is +/- 20 log10((1 + alpha/2) / (1 - alpha/2)) dB (every channel's gain may
+change by up to that factor at once), its disk phase margin +/- 2 atan(alpha/2). With an input delay
+the break is at the command, before the delay line; a diagonal perturbation commutes with the
+per-channel delay, so the margin is the same as right at the plant.
 
 mu is bounded from both sides at each frequency:
 
@@ -22,7 +25,9 @@ mu is bounded from both sides at each frequency:
   min over positive diagonal D of sigma_max(D M D^-1). In log coordinates D = diag(e^x) this is a
   convex function of x (Sezginer and Overton 1990), so a local minimiser is global. Started from an
   Osborne balancing (numpy, vectorised over the grid) of |M|, the minimum is found by scipy.optimize
-  (``minimize_scalar`` bounded for m = 2, Nelder-Mead over x_2..x_m for m > 2). Only frequencies
+  (``minimize_scalar`` bounded for m = 2, Nelder-Mead over x_2..x_m for m > 2; on this non-smooth
+  function Nelder-Mead may stop short of the minimum, and the value is then still an upper bound,
+  only less tight: the lower bound below shows the gap). Only frequencies
   whose Osborne-balanced bound could still exceed the worst refined one are refined (any D gives an
   upper bound, so the skipped ones cannot hold the maximum).
 * lower bound: mu(M) = max over diagonal unitary U of rho(M U) (Doyle 1982); any U gives a lower

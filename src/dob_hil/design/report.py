@@ -18,6 +18,8 @@ def _mat(name: str, value: list[list[float]], indent: str = "  ") -> list[str]:
 def _inline(value: object, precision: int = 5) -> str:
     """A matrix on one line: [[a, b], [c, d]]."""
     arr = np.array(value, dtype=np.float64)
+    big = float(np.max(np.abs(arr[np.isfinite(arr)]), initial=0.0))
+    arr = np.where(np.abs(arr) <= 1e-12 * big, 0.0, arr)  # rounding residue: 0, not -0.
     return np.array2string(
         arr, precision=precision, separator=", ", max_line_width=10**6, suppress_small=True
     ).replace("\n", "")
