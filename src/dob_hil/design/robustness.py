@@ -211,6 +211,8 @@ class Merit:
     delay_margin_s: float
     closed_loop_radius: float
     multiloop_input: MultiloopDiskMargin | None = None  # evaluate(multiloop=True) only
+    # per input (loop at a time): gain margin dB, phase margin deg, delay margin s
+    input_margins: tuple[tuple[float, float, float], ...] = ()
 
     @property
     def worst_rejection(self) -> float:
@@ -289,6 +291,7 @@ def evaluate(
         delay_margin_s=min(dms),
         closed_loop_radius=radius,
         multiloop_input=multiloop_disk_margin(r.Si, w, where="plant input") if multiloop else None,
+        input_margins=tuple(zip(gms, pms, dms, strict=True)),
     )
 
 
@@ -372,17 +375,27 @@ def design_warnings(
         return ()  # refused by the Theorem-1 gate
     b = ROBUSTNESS_BOUNDS
     which = "with the DOB" if dob_enabled else "without the DOB"
+
+    def at(k: int, value: float) -> str:
+        """Which input sets a loop-at-a-time margin (several inputs only)."""
+        if design.n_inputs == 1:
+            return ""
+        i = next(i for i, row in enumerate(m.input_margins) if row[k] == value)
+        name = design.input_names[i] if i < len(design.input_names) else ""
+        return f" at input {i + 1}{f' ({name})' if name else ''} (loop at a time)"
+
     out = []
     if m.peak_S > b["max_peak_S"]:
         out.append(f"robustness {which}: peak |S| = {m.peak_S:.3g} > {b['max_peak_S']:g}")
     if abs(m.gain_margin_db) < b["min_gain_margin_dB"]:
         out.append(
             f"robustness {which}: gain margin {m.gain_margin_db:.3g} dB < {b['min_gain_margin_dB']:g} dB"
+            + at(0, m.gain_margin_db)
         )
     if m.phase_margin_deg < b["min_phase_margin_deg"]:
         out.append(
             f"robustness {which}: phase margin {m.phase_margin_deg:.3g} deg "
-            f"< {b['min_phase_margin_deg']:g} deg"
+            f"< {b['min_phase_margin_deg']:g} deg" + at(1, m.phase_margin_deg)
         )
     dm_samples = m.delay_margin_s / design.period_s
     if dm_samples < b["min_delay_margin_samples"]:
@@ -393,7 +406,7 @@ def design_warnings(
                 cause = f" (the DOB cuts it from {off:.2f} samples)"
         out.append(
             f"robustness {which}: delay margin {1e6 * m.delay_margin_s:.0f} us = {dm_samples:.2f} "
-            f"samples < {b['min_delay_margin_samples']:g} sample{cause}"
+            f"samples{at(2, m.delay_margin_s)} < {b['min_delay_margin_samples']:g} sample{cause}"
         )
     bounds = disk_bounds if disk_bounds is not None else DiskBounds.from_config(None, None)
     if design.n_inputs > 1 or bounds.configured:
