@@ -5,7 +5,8 @@
   sigma_max for MIMO loops); right, noise to current: |K S| times one encoder count [A] (for several
   inputs one curve per input: the 2-norm of row i of K S, the worst direction of the noise).
 * ``disturbance.png``: input disturbance w -> output y, with and without the DOB.
-* ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase.
+* ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase
+  (several inputs: sigma_max, and each input's own Q_ii in magnitude and phase).
 * ``dob_locus.png``: eigenvalue magnitudes of Phi - Phi Lc C - Gam Kdist Lc C along the DOB gain
   direction, with the design, the fastest gain and the stability limit marked.
 * ``ltr.png``: the target loop Gtl and the loops Lo_q of the LTR sequence of q, with the error band
@@ -127,9 +128,21 @@ def _dob_filter(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     if d.n_inputs == 1:
         axp.semilogx(f, np.degrees(np.unwrap(np.angle(a.Q[:, 0, 0]))), "b-")
-    axp.set(
-        xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "(MIMO: no phase) [deg]"
-    )
+    else:  # several inputs: each input's own estimate Q_ii (the off-diagonal entries are cross terms)
+        for i in range(d.n_inputs):
+            name = d.input_names[i] if i < len(d.input_names) else str(i + 1)
+            ax.semilogx(
+                f,
+                _db(np.abs(a.Q[:, i, i])),
+                "--",
+                color=f"C{i + 1}",
+                label=f"Q_{i + 1}{i + 1}, input {i + 1} ({name})",
+            )
+            axp.semilogx(f, np.degrees(np.unwrap(np.angle(a.Q[:, i, i]))), "--", color=f"C{i + 1}",
+                         label=f"Q_{i + 1}{i + 1}, input {i + 1} ({name})")  # fmt: skip
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        axp.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    axp.set(xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "phase of Q_ii [deg]")
     axp.set_xlim(f[0], 0.5e9 / d.period_ns)
     axp.grid(True, which="both", alpha=0.3)
     return _save(fig, out_dir / "dob_filter.png", plt)
