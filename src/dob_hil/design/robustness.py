@@ -336,18 +336,22 @@ def plant_input_multiloop(design: Design, Kdist: Matrix, omega_rad_s: FloatArray
 def multiloop_warnings(m: MultiloopDiskMargin, bounds: DiskBounds, which: str) -> list[str]:
     """Messages for a multiloop disk margin below ``bounds``."""
     out = []
-    src = "design.optimize.min_disk_" if bounds.configured else "default "
+
+    def src(key: str) -> str:
+        name = f"design.optimize.min_disk_{key}"
+        return name if bounds.configured else f"default bound; {name} sets it"
+
     tail = f" at {m.at_hz:.3g} Hz (alpha {m.alpha:.3g}; every input perturbed at once)"
     tol = 1.0 - DISK_BOUND_TOLERANCE
     if bounds.gain_margin_db is not None and m.gain_margin_db < bounds.gain_margin_db * tol:
         out.append(
             f"robustness {which}: multiloop disk gain margin at the plant input +/-{m.gain_margin_db:.3g} dB "
-            f"< {bounds.gain_margin_db:g} dB ({src}gain_margin_dB){tail}"
+            f"< {bounds.gain_margin_db:g} dB ({src('gain_margin_dB')}){tail}"
         )
     if bounds.phase_margin_deg is not None and m.phase_margin_deg < bounds.phase_margin_deg * tol:
         out.append(
             f"robustness {which}: multiloop disk phase margin at the plant input +/-{m.phase_margin_deg:.3g} "
-            f"deg < {bounds.phase_margin_deg:g} deg ({src}phase_margin_deg){tail}"
+            f"deg < {bounds.phase_margin_deg:g} deg ({src('phase_margin_deg')}){tail}"
         )
     return out
 
