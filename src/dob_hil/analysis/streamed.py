@@ -60,7 +60,7 @@ from dob_hil.log.schemas import (
     TOPIC_SAMPLE,
     TOPIC_TRUTH,
 )
-from dob_hil.log.stream import Blocks, open_stream
+from dob_hil.log.stream import Blocks, open_stream, return_large_buffers_to_the_os
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -828,6 +828,7 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
 
 def analyze_streamed(path: Path | str, from_s: float) -> tuple[LoadedLog, dict[str, Any]]:
     """Survey and metrics of one log, streamed (module docstring)."""
+    return_large_buffers_to_the_os()
     log, sv = survey(Path(path), from_s)
     return log, streamed_metrics(log, sv)
 

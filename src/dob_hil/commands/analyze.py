@@ -44,7 +44,7 @@ def _clean(value: Any) -> Any:
 # Logs of more samples than this are analysed streamed (bounded memory, dob_hil.analysis.streamed)
 # when no plots are asked for; shorter ones are read whole (the figures are the same; sums of
 # squares may differ in the last bits between the two paths).
-STREAM_ABOVE_SAMPLES = 250_000
+STREAM_ABOVE_SAMPLES = 100_000
 
 
 def _x_ref_blocks(log: Any) -> Iterator[Any]:

@@ -11,11 +11,13 @@ complete once :meth:`LogStream.blocks` is exhausted).
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import mmap
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -126,6 +128,22 @@ def _subset(dtype: np.dtype[np.void], names: tuple[str, ...]) -> np.dtype[np.voi
     return np.dtype([(name, dtype.fields[name][0]) for name in names if name in dtype.fields])
 
 
+M_MMAP_THRESHOLD: Final = -3  # glibc mallopt parameter
+LARGE_BUFFER_BYTES: Final = 128 << 10
+
+
+def return_large_buffers_to_the_os() -> bool:
+    """Have glibc's malloc serve every allocation of 128 KiB or more with its own mmap, returned
+    to the OS when freed (glibc's default raises that threshold as buffers are freed, after
+    which the reader's chunk buffers, allocated by two threads, fragment the heap arenas and
+    the resident size creeps up with the log's length). Process-wide; False where not glibc."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(M_MMAP_THRESHOLD, LARGE_BUFFER_BYTES))
+    except (OSError, AttributeError):
+        return False
+
+
 def open_stream(
     path: Path | str, fields: Mapping[str, Iterable[str] | None], *, events: bool = True
 ) -> LogStream:
@@ -146,4 +164,4 @@ def open_stream(
         raise
 
 
-__all__ = ["Blocks", "LogStream", "open_stream"]
+__all__ = ["Blocks", "LogStream", "open_stream", "return_large_buffers_to_the_os"]
