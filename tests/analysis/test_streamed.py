@@ -193,3 +193,18 @@ def test_streamed_memory_does_not_grow_with_the_log(tmp_path: Path, monkeypatch:
     # 5 % of the in-memory growth: about 13 B per extra sample (two int64 columns would break it)
     assert streamed[1] - streamed[0] < 0.05 * growth_in_memory, (streamed, in_memory)
     assert streamed[1] < in_memory[1] / 2
+
+
+def test_streamed_per_axis_metrics_of_a_two_by_two_log(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Per-output and per-input lists (n_outputs, n_inputs columns) equal the in-memory ones."""
+    from mimo_log_support import write_mimo_log
+
+    run = write_mimo_log(tmp_path / "mimo.mcap", dob=True)
+    path = rewrite_interleaved(read_log(run.path), tmp_path / "mimo-many.mcap")
+    monkeypatch.setattr(reader_module, "GROUP_BYTES", TINY_GROUP_BYTES)
+    expected = _in_memory(path, 0.0)
+    _, got = analyze_streamed(path, 0.0)
+    _same(expected, got)
+    assert len(got["tracking_error_rms_per_output"]) == 2 and len(got["current_max_A_per_input"]) == 2

@@ -500,6 +500,7 @@ class _Columns:
         self.sums: list[float] = []
         self.counts: list[int] = []
         self.maxima: list[float] = []
+        self.finite_maxima: list[float | None] = []  # of the finite values only
         self.rows = 0
 
     def add(self, columns: list[FloatArray]) -> None:
@@ -507,10 +508,15 @@ class _Columns:
             self.sums = [0.0] * len(columns)
             self.counts = [0] * len(columns)
             self.maxima = [-np.inf] * len(columns)
+            self.finite_maxima = [None] * len(columns)
         for j, c in enumerate(columns):
             finite = c[np.isfinite(c)]
             self.sums[j] += float(np.dot(finite, finite))
             self.counts[j] += len(finite)
+            if len(finite):
+                fm = float(np.abs(finite).max())
+                old = self.finite_maxima[j]
+                self.finite_maxima[j] = fm if old is None else max(old, fm)
             if len(c):
                 m = float(np.abs(c).max())
                 self.maxima[j] = m if (np.isnan(m) or np.isnan(self.maxima[j])) else max(self.maxima[j], m)
@@ -530,6 +536,14 @@ class _Columns:
     def max(self) -> float | None:
         return max(self.maxima) if self.rows else None
 
+    def rms_per_column(self, width: int) -> list[float | None]:
+        if not self.sums:
+            return [None] * width
+        return [math.sqrt(s / c) if c else None for s, c in zip(self.sums, self.counts, strict=True)]
+
+    def max_per_column(self, width: int) -> list[float | None]:
+        return list(self.finite_maxima) if self.sums else [None] * width
+
 
 @dataclass
 class _Accumulators:
@@ -544,6 +558,9 @@ class _Accumulators:
     dist: _Columns = field(default_factory=_Columns)
     dist_error: _Columns = field(default_factory=_Columns)
     wu: list[float] = field(default_factory=list)
+    gain_ww: list[float] = field(default_factory=list)  # per input, over the finite pairs
+    gain_wu: list[float] = field(default_factory=list)
+    currents: _Columns = field(default_factory=_Columns)
     estimation: list[_Columns] = field(default_factory=list)
     saturated: int = 0
     overruns: int = 0
@@ -578,6 +595,13 @@ class _Accumulators:
         self.dist_error.add([d + v for d, v in zip(dist, u, strict=True)])
         wu = [-float(np.dot(d, v)) for d, v in zip(dist, u, strict=True)]
         self.wu = wu if not self.wu else [a + b for a, b in zip(self.wu, wu, strict=True)]
+        oks = [np.isfinite(d) & np.isfinite(v) for d, v in zip(dist, u, strict=True)]
+        ww = [float(np.dot(d[ok], d[ok])) for d, ok in zip(dist, oks, strict=True)]
+        du = [float(np.dot(d[ok], v[ok])) for d, v, ok in zip(dist, u, oks, strict=True)]
+        self.gain_ww = ww if not self.gain_ww else [a + b for a, b in zip(self.gain_ww, ww, strict=True)]
+        self.gain_wu = du if not self.gain_wu else [a + b for a, b in zip(self.gain_wu, du, strict=True)]
+        applied = np.asarray(s["u_applied_a"], dtype=np.float64).reshape(len(s), -1)
+        self.currents.add([applied[:, j] for j in range(m)])
         if self.n_plant_for_estimation:
             x_hat = np.asarray(s["x_hat"], dtype=np.float64).reshape(len(s), -1)
             if not self.estimation:
@@ -639,6 +663,26 @@ class _Accumulators:
         out["disturbance_estimate_gain"] = wu / ww if ww > 0 else None
         if self.n_plant_for_estimation:
             out["estimation_error_rms"] = [acc.rms() for acc in self.estimation]
+        return out
+
+    def per_axis(self, p: int, m: int) -> dict[str, Any]:
+        """:func:`dob_hil.analysis.metrics._per_axis` from the accumulated sums."""
+        track = self.track_truth if self.truth_samples > 0 else self.track_measured
+        out: dict[str, Any] = {
+            "tracking_error_rms_per_output": track.rms_per_column(p),
+            "tracking_error_max_per_output": track.max_per_column(p),
+            "disturbance_rms_per_input": [None] * m,
+            "disturbance_estimate_error_rms_per_input": [None] * m,
+            "disturbance_estimate_gain_per_input": [None] * m,
+        }
+        if self.truth_samples:
+            out["disturbance_rms_per_input"] = self.dist.rms_per_column(m)
+            out["disturbance_estimate_error_rms_per_input"] = self.dist_error.rms_per_column(m)
+            out["disturbance_estimate_gain_per_input"] = [
+                0.0 - du / ww if ww > 0 else None for ww, du in zip(self.gain_ww, self.gain_wu, strict=True)
+            ]
+        out["current_rms_A_per_input"] = self.currents.rms_per_column(m)
+        out["current_max_A_per_input"] = self.currents.max_per_column(m)
         return out
 
     def timing(self) -> dict[str, Any]:
@@ -803,7 +847,11 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         bus = _bus_plan(log, sv)
         res = _metrics_pass(log, sv, offset, bus)
     acc = res.acc
-    extra: dict[str, Any] = {"timing_percentiles": acc.percentile_method()}
+    layout = log.data.layout
+    extra: dict[str, Any] = {
+        **acc.per_axis(layout.n_outputs, layout.n_inputs),
+        "timing_percentiles": acc.percentile_method(),
+    }
     if res.lost:
         log.warnings.append(f"{res.lost} samples not matched to ground truth: truth records out of order")
     figures = WindowFigures(
