@@ -161,7 +161,10 @@ def _block(
     prev = np.empty(n, dtype=np.int64)
     prev[0] = carry.prev_seq if carry.prev_seq is not None else -1
     prev[1:] = seq[:-1]
-    restart = (prev + 1 != seq) & np.isin(seq, np.fromiter(resumed, dtype=np.int64), invert=True)
+    restart = prev + 1 != seq
+    if restart.any():  # a gap: a restart unless the runner explained it
+        at = np.flatnonzero(restart)
+        restart[at] = np.isin(seq[at], np.fromiter(resumed, dtype=np.int64), invert=True)
     if carry.prev_seq is None:
         restart[0] = False
     resyncs.extend(seq[restart].tolist())
