@@ -90,21 +90,25 @@ def test_streamed_metrics_equal_the_in_memory_ones_over_many_groups(
     assert got["timing_percentiles"] == "exact"
 
 
+@pytest.mark.parametrize("lose_truth", [False, True])
 def test_streamed_finds_the_truth_offset_of_a_realtime_log(
-    runs: dict[tuple[str, bool], Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    runs: dict[tuple[str, bool], Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, lose_truth: bool
 ) -> None:
     """Truth counted 300 periods ahead of the host (as in real time): offset 0 fails its check,
-    the streamed search finds 300 as match_truth does."""
+    the streamed search finds 300 as match_truth does; also with truth records lost (period
+    indexes not consecutive: the index is held)."""
     data = read_log(runs[("paper-sine", True)])
     samples, truth = data.samples.copy(), data.truth.copy()
     samples["feedback_seq"] = (samples["seq"].astype(np.int64) + 300) % 256
     truth["period_index"] += 300
+    if lose_truth:
+        truth = np.delete(truth, np.arange(400, 410))
     path = rewrite_interleaved(data, tmp_path / "rt.mcap", samples=samples, truth=truth)
     monkeypatch.setattr(reader_module, "GROUP_BYTES", TINY_GROUP_BYTES)
     expected = _in_memory(path, 0.0)
     _, got = analyze_streamed(path, 0.0)
     _same(expected, got)
-    assert got["truth_samples"] == got["samples"]
+    assert got["truth_samples"] == got["samples"] - (10 if lose_truth else 0)
 
 
 def test_long_log_is_streamed_by_the_command(

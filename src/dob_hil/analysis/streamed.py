@@ -796,22 +796,47 @@ def _lockstep_fits(log: LoadedLog, sv: Survey, res: _PassResult) -> bool:
     return _score(res.pick_true, res.pick_y) <= encoder_quantum(log)
 
 
-def _search_offset(log: LoadedLog, sv: Survey, res: _PassResult) -> int | None:
-    """match_truth's candidate search, with the truth outputs fetched in one pass."""
-    index = sv.truth_index()
-    quantum = encoder_quantum(log)
-    d0 = int(np.argmax(sv.fb_offsets))
-    lo = index.lo - sv.seq_max
-    hi = index.hi - sv.seq_min
-    start = d0 + 256 * ((lo - d0) // 256)
-    candidates = np.unique(np.concatenate([[0], np.arange(start, hi + 1, 256, dtype=np.int64)]))
-    rows = index.rows(res.pick_seq[None, :] + candidates[:, None])
+def _candidate_diffs(
+    path: Path, index: _Consecutive, candidates: IntArray, pick_seq: IntArray, pick_y: FloatArray,
+    C_cont: FloatArray,
+) -> tuple[FloatArray, IntArray]:  # fmt: skip
+    """match_truth's (candidates x picks) matrix of max |true - measured output| (inf where the
+    truth has no row), filled as the truth records stream by: memory is the matrix (8 B per
+    candidate and pick), not the rows it is made from."""
+    diff = np.full((len(candidates), len(pick_seq)), np.inf)
+    present = np.zeros(len(candidates), dtype=np.int64)
+    for i, s_i in enumerate(pick_seq.tolist()):
+        rel = s_i + candidates - index.first
+        present += (rel >= 0) & (rel < index.n)
+    with open_stream(path, {TOPIC_TRUTH: ("state",)}, events=False) as stream:
+        g0 = 0
+        for b in stream.blocks():
+            t = b.truth
+            if len(t) == 0:
+                continue
+            states = np.asarray(t["state"], dtype=np.float64).reshape(len(t), -1)
+            for i, s_i in enumerate(pick_seq.tolist()):
+                # candidate c wants the truth row s_i + c - first: those in this block
+                lo = g0 + index.first - s_i
+                a, z = np.searchsorted(candidates, [lo, lo + len(t)])
+                if z > a:
+                    y_true = states[candidates[a:z] - lo] @ C_cont.T
+                    diff[a:z, i] = np.abs(y_true - pick_y[i][None, :]).max(axis=1)
+            g0 += len(t)
+    return diff, present
+
+
+def _candidate_diffs_held(
+    path: Path, index: _Index, candidates: IntArray, pick_seq: IntArray, pick_y: FloatArray,
+    C_cont: FloatArray,
+) -> tuple[FloatArray, IntArray]:  # fmt: skip
+    """As :func:`_candidate_diffs` for truth records whose period indexes are not consecutive
+    (the index is held; the rows of every candidate are gathered at once, as match_truth does)."""
+    rows = index.rows(pick_seq[None, :] + candidates[:, None])
     wanted = np.unique(rows[rows >= 0])
-    p = log.data.layout.n_outputs
-    design = log.design
-    C_cont = design.C_cont if design is not None else np.eye(p, log.data.layout.n_plant_states)
+    p = C_cont.shape[0]
     outputs = np.zeros((len(wanted), p))
-    with open_stream(log.path, {TOPIC_TRUTH: ("state",)}, events=False) as stream:
+    with open_stream(path, {TOPIC_TRUTH: ("state",)}, events=False) as stream:
         g0 = 0
         for b in stream.blocks():
             t = b.truth
@@ -824,9 +849,26 @@ def _search_offset(log: LoadedLog, sv: Survey, res: _PassResult) -> int | None:
         outputs[np.searchsorted(wanted, np.maximum(rows, 0))] if len(wanted) else np.zeros((*rows.shape, p))
     )
     y_true = y_true.reshape(*rows.shape, p)
-    diff = np.abs(y_true - res.pick_y[None, :, :]).max(axis=2)
-    diff = np.where(rows >= 0, diff, np.inf)
-    present = (rows >= 0).sum(axis=1)
+    diff = np.abs(y_true - pick_y[None, :, :]).max(axis=2)
+    return np.where(rows >= 0, diff, np.inf), (rows >= 0).sum(axis=1)
+
+
+def _search_offset(log: LoadedLog, sv: Survey, res: _PassResult) -> int | None:
+    """match_truth's candidate search, with the truth outputs fetched in one pass."""
+    index = sv.truth_index()
+    quantum = encoder_quantum(log)
+    d0 = int(np.argmax(sv.fb_offsets))
+    lo = index.lo - sv.seq_max
+    hi = index.hi - sv.seq_min
+    start = d0 + 256 * ((lo - d0) // 256)
+    candidates = np.unique(np.concatenate([[0], np.arange(start, hi + 1, 256, dtype=np.int64)]))
+    p = log.data.layout.n_outputs
+    design = log.design
+    C_cont = design.C_cont if design is not None else np.eye(p, log.data.layout.n_plant_states)
+    if isinstance(index, _Consecutive):
+        diff, present = _candidate_diffs(log.path, index, candidates, res.pick_seq, res.pick_y, C_cont)
+    else:
+        diff, present = _candidate_diffs_held(log.path, index, candidates, res.pick_seq, res.pick_y, C_cont)
     scores = np.where(2 * present >= len(res.pick_y), np.median(diff, axis=1), np.inf)
     best = int(np.argmin(scores))
     zero = int(np.flatnonzero(candidates == 0)[0])
