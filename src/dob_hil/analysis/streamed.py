@@ -805,7 +805,7 @@ def _candidate_diffs(
     candidate and pick), not the rows it is made from."""
     diff = np.full((len(candidates), len(pick_seq)), np.inf)
     present = np.zeros(len(candidates), dtype=np.int64)
-    for i, s_i in enumerate(pick_seq.tolist()):
+    for s_i in pick_seq.tolist():
         rel = s_i + candidates - index.first
         present += (rel >= 0) & (rel < index.n)
     with open_stream(path, {TOPIC_TRUTH: ("state",)}, events=False) as stream:
@@ -869,7 +869,8 @@ def _search_offset(log: LoadedLog, sv: Survey, res: _PassResult) -> int | None:
         diff, present = _candidate_diffs(log.path, index, candidates, res.pick_seq, res.pick_y, C_cont)
     else:
         diff, present = _candidate_diffs_held(log.path, index, candidates, res.pick_seq, res.pick_y, C_cont)
-    scores = np.where(2 * present >= len(res.pick_y), np.median(diff, axis=1), np.inf)
+    medians = np.concatenate([np.median(diff[i : i + 4096], axis=1) for i in range(0, len(diff), 4096)])
+    scores = np.where(2 * present >= len(res.pick_y), medians, np.inf)  # by rows: no copy of diff
     best = int(np.argmin(scores))
     zero = int(np.flatnonzero(candidates == 0)[0])
     if np.isfinite(scores[zero]) and scores[zero] <= scores[best] + 2.0 * quantum:
