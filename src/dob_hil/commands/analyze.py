@@ -6,6 +6,9 @@ in the order given, with the keys documented in :mod:`dob_hil.analysis.metrics` 
 (the PNG paths written, the same list for every log; empty with ``--no-plots``). Numbers that
 the log cannot give are ``null``. Plots go to ``--plots DIR``, by default to a folder beside the
 first log: ``<stem>-plots/`` (one log) or ``<stem1>-vs-<stem2>-plots/`` (several, overlaid).
+
+Without plots, a log of more than ``STREAM_ABOVE_SAMPLES`` samples is analysed streamed, in memory
+independent of its length (:mod:`dob_hil.analysis.streamed`); with plots, logs are read whole.
 """
 
 from __future__ import annotations
