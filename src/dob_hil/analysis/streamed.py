@@ -16,14 +16,14 @@ whatever the log's length. Two passes over the file:
    the bus frames of the window (frames within 1 s of the window's ends are kept until the
    clock offset is final).
 
-Ground truth is joined to the samples as it streams by (truth rows are buffered until the
-samples that want them arrive; samples wait for their truth rows at most ``MAX_PENDING`` groups,
-after which a sample without its row counts as unmatched, with a warning naming how many).
-The truth offset of :func:`dob_hil.analysis.truth_match.match_truth` is first assumed to be the lockstep convention (0), and checked on the same 64 samples
-``match_truth`` scores; only when that check fails (a real-time log) is the offset searched in
-a pass over the truth records and the metrics pass run again with it. The bus clock offset is
-refined as :func:`dob_hil.analysis.bus_usage.clock_offset_ns` does; should it move by more than
-the 1 s margin, the frames are counted again in a pass of their own.
+Ground truth is joined to the samples as it streams by (truth rows are buffered until the samples
+that want them arrive; samples wait for their truth rows at most ``MAX_PENDING`` groups, after which
+a sample without its row counts as unmatched, with a warning naming how many). The truth offset of
+:func:`dob_hil.analysis.truth_match.match_truth` is first assumed to be the lockstep convention (0),
+and checked on the same 64 samples ``match_truth`` scores; only when that check fails (a real-time
+log) is the offset searched in a pass over the truth records and the metrics pass run again with it.
+The bus clock offset is refined as :func:`dob_hil.analysis.bus_usage.clock_offset_ns` does; should
+it move by more than the 1 s margin, the frames are counted again in a pass of their own.
 
 The figures are those of the in-memory path; sums are accumulated block by block, so sums of
 squares (RMS) may differ from the in-memory ones in the last bits; counts, maxima and
