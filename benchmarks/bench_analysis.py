@@ -23,7 +23,8 @@ child process (wall time, peak RSS), and the streamed verification alone in this
 (samples/s without the interpreter's start).
 
 Goals: read >= 1,000,000 samples/s and > 20x the mcap plain reader; analysing the 1-hour log in
-<= 2 GB; ``replay --verify`` >= 500,000 samples/s in a memory independent of the log's length.
+<= 500 MB (streamed, as for an 8-hour log); ``replay --verify`` >= 500,000 samples/s in a memory
+independent of the log's length.
 
     .venv/bin/python benchmarks/bench_analysis.py [--smoke] [--json] [--samples N]
     .venv/bin/python benchmarks/bench_analysis.py --hour [--hour-samples N] [--cache-dir DIR]
@@ -51,7 +52,7 @@ from dob_hil.log.bench import write_synthetic
 from dob_hil.log.schemas import TOPIC_SAMPLE
 
 READ_GOAL_PER_S = 1_000_000
-RSS_GOAL_BYTES = 2 * 1024**3
+RSS_GOAL_BYTES = 500 * 1000**2  # analyze is streamed: an 8-hour log in <= 500 MB (issue 16)
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "dob-hil-bench"
 
 
@@ -289,7 +290,7 @@ def hour(args: Any) -> dict[str, Any]:
         "log_written_in_s": None if write_s is None else round(write_s, 1),
         "read_log_child": read,
         "dob_hil_analyze_child": analyze,
-        "goal_analyze_le_2GB_met": analyze["exit_status"] == 0
+        "goal_analyze_le_500MB_met": analyze["exit_status"] == 0
         and analyze["peak_rss_bytes"] <= RSS_GOAL_BYTES,
     }
 
@@ -312,7 +313,7 @@ def main() -> None:
     else:
         result = throughput(args)
         name = "analysis read throughput vs decoding baselines"
-    result["goal"] = "read >= 1,000,000 samples/s; analysing a 1-hour log (12 M samples) in <= 2 GB"
+    result["goal"] = "read >= 1,000,000 samples/s; analysing a long log (streamed) in <= 500 MB"
     report(name, result, args.json)
 
 

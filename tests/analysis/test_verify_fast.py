@@ -108,3 +108,19 @@ def test_the_vector_quantizer_is_the_drive_quantizer() -> None:
     for i, value in enumerate(u.tolist()):
         (code,), (amps,), saturated = dq.quantize((value,))
         assert (code, amps, saturated) == (int(codes[i]), float(applied[i]), bool(sat[i])), value
+
+
+@pytest.mark.parametrize("scenario", ["paper-sine", "paper-step"])
+def test_reference_rows_are_at_k_bit_for_bit_with_gaps(scenario: str) -> None:
+    from dob_hil.control.reference import make_reference
+
+    config = parse_config_text(scenario_text(scenario))
+    reference = make_reference(config.reference, 2, config.plant.period_s)
+    for seq in (
+        np.arange(1000, 3000, dtype=np.int64),
+        np.concatenate([np.arange(0, 500), np.arange(520, 900)]).astype(np.int64),  # small gaps: block
+        np.asarray([5, 10**7, 10**7 + 1], dtype=np.int64),  # a huge gap: one at() per sample
+    ):
+        rows = verify_fast.reference_rows(reference, seq)
+        expected = np.asarray([reference.at(k) for k in seq.tolist()], dtype=np.float64)
+        assert np.array_equal(rows.view(np.uint64), expected.view(np.uint64))

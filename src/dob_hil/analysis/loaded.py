@@ -20,6 +20,7 @@ from dob_hil.config import Config, parse_config_text
 from dob_hil.design import Design
 from dob_hil.errors import DobHilError
 from dob_hil.log import LogData, read_log
+from dob_hil.log.reader import StructArray
 from dob_hil.log.schemas import FLAG_DOB_ON, TOPIC_CAN, TOPIC_SAMPLE, TOPIC_TRUTH
 
 DESIGN_ATTACHMENT = "design.json"
@@ -133,38 +134,66 @@ def _config_of(data: LogData, warnings: list[str]) -> Config | None:
         return None
 
 
+@dataclass(frozen=True)
+class SampleSummary:
+    """What :func:`interpret` needs of the samples when they are streamed, not held: their
+    count, the median of the positive spacings of ``time_ns`` (None without any) and how many
+    carry the DOB flag."""
+
+    n: int
+    median_spacing_ns: int | None
+    dob_on: int
+
+
+def median_spacing_ns(samples: StructArray) -> int | None:
+    """Median of the positive spacings of the samples' ``time_ns`` (None without any)."""
+    t = samples["time_ns"]
+    median: int | None = None
+    if len(t) >= 2:
+        dt = np.diff(t.astype(np.int64))
+        dt = dt[dt > 0]
+        if len(dt):
+            median = int(np.median(dt))
+    return median
+
+
 def _period_ns(
-    path: Path, data: LogData, run: dict[str, str], design: Design | None, warnings: list[str]
+    path: Path,
+    stats: SampleSummary | StructArray,
+    run: dict[str, str],
+    design: Design | None,
+    warnings: list[str],
 ) -> int:
     period = _int_or_none(run.get("period_ns"))
     if period is not None:
         return period
     if design is not None:
         return design.period_ns
-    t = data.samples["time_ns"]
-    if len(t) >= 2:
-        dt = np.diff(t.astype(np.int64))
-        dt = dt[dt > 0]
-        if len(dt):
-            warnings.append("no period in the run metadata or design: using the median sample spacing")
-            return int(np.median(dt))
+    median = stats.median_spacing_ns if isinstance(stats, SampleSummary) else median_spacing_ns(stats)
+    if median is not None:
+        warnings.append("no period in the run metadata or design: using the median sample spacing")
+        return median
     raise DobHilError(f"{path}: the log holds neither a control period nor enough samples to infer one")
 
 
-def _dob_enabled(data: LogData, run: dict[str, str], warnings: list[str]) -> bool:
+def _dob_enabled(stats: SampleSummary | StructArray, run: dict[str, str], warnings: list[str]) -> bool:
     text = run.get("dob_enabled")
     if text in ("true", "false"):
         return text == "true"
-    flags = data.samples["flags"]
-    if len(flags):
-        on = int(np.count_nonzero(flags & FLAG_DOB_ON))
+    if isinstance(stats, SampleSummary):
+        n, on = stats.n, stats.dob_on
+    else:
+        n, on = len(stats), int(np.count_nonzero(stats["flags"] & FLAG_DOB_ON))
+    if n:
         warnings.append("no dob_enabled in the run metadata: taken from the samples' DOB flag")
-        return 2 * on >= len(flags)
+        return 2 * on >= n
     return False
 
 
-def interpret(path: Path, data: LogData) -> LoadedLog:
-    """Interpret an already read log (see the module docstring)."""
+def interpret(path: Path, data: LogData, stats: SampleSummary | None = None) -> LoadedLog:
+    """Interpret an already read log (see the module docstring). ``stats``: the samples'
+    summary when ``data`` holds no samples because they are streamed (:mod:`streamed`)."""
+    samples: SampleSummary | StructArray = data.samples if stats is None else stats
     warnings = list(data.warnings)
     run = data.metadata.get("run", {})
     design = _design_of(data, warnings)
@@ -187,8 +216,8 @@ def interpret(path: Path, data: LogData) -> LoadedLog:
         data=data,
         design=design,
         config=config,
-        period_ns=_period_ns(path, data, run, design, warnings),
-        dob_enabled=_dob_enabled(data, run, warnings),
+        period_ns=_period_ns(path, samples, run, design, warnings),
+        dob_enabled=_dob_enabled(samples, run, warnings),
         mode=run.get("mode", "unknown"),
         bitrate_bps=bitrate,
         warnings=warnings,

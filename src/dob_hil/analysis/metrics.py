@@ -18,7 +18,10 @@ events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log)
 ``log_dropped_records`` (the summary's count of records of any kind the writer dropped, whole run);
 ``latency_us`` (command send minus feedback receive), ``period_jitter_us``
 (|receive interval - period| between consecutive samples with feedback) and ``compute_us``
-(controller step): each ``{"p50", "p99", "max", "n"}``; ``bus_load`` (:mod:`bus_usage`);
+(controller step): each ``{"p50", "p99", "max", "n"}``; ``timing_percentiles``: how those
+percentiles were computed ("exact": numpy's linear percentile of every value; a streamed log with
+more than a million distinct nanosecond values says which rounding it used, see
+:mod:`dob_hil.analysis.int_distribution`); ``bus_load`` (:mod:`bus_usage`);
 ``truth_samples`` (samples matched to ground truth); ``notes`` and ``warnings`` (lists of text).
 
 Per axis (lists, one entry per plant output or input, in order; the combined keys above stay):
@@ -33,6 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -239,6 +243,28 @@ def _int_or_none(text: str | None) -> int | None:
         return None
 
 
+@dataclass
+class WindowFigures:
+    """What the metrics of a window are computed from, however the log was read: held in memory
+    (:func:`compute_metrics`) or streamed (:mod:`dob_hil.analysis.streamed`)."""
+
+    samples: int  # in the window
+    t_first_s: float | None  # first and last sample instants of the window (None: empty)
+    t_last_s: float | None
+    log_end_s: float  # the last sample's instant (0 without samples)
+    tracking: tuple[float | None, float | None, str, int]  # rms, max, source, samples used
+    disturbance: dict[str, Any]
+    saturated: int
+    overruns: int
+    feedback_missing: int
+    skipped: int
+    dropped: int
+    timing: dict[str, Any]
+    bus: dict[str, Any] | None
+    truth_samples: int
+    extra: dict[str, Any] = field(default_factory=dict)  # per axis (_per_axis), timing_percentiles
+
+
 def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = None) -> dict[str, Any]:
     """The metrics dictionary of the module docstring."""
     sig = signals if signals is not None else derive_signals(log)
@@ -246,15 +272,40 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
     first = window_start(sig.t_s, from_s)
     w = slice(first, None)
     n = len(s) - first
-    warnings = list(log.warnings)
-    notes: list[str] = []
-    if n == 0:
-        end = float(sig.t_s[-1]) if len(s) else 0.0
-        warnings.append(f"no samples in the window: --from {from_s:g} s is past the log's end ({end:.4f} s)")
     flags = s["flags"][w]
     seq = s["seq"][w].astype(np.int64)
     skipped, dropped = gap_accounting(seq, log.data.events)
-    rms, emax, source, used = _tracking(sig, w)
+    t = sig.t_s[w]
+    figures = WindowFigures(
+        samples=n,
+        t_first_s=float(t[0]) if n else None,
+        t_last_s=float(t[-1]) if n else None,
+        log_end_s=float(sig.t_s[-1]) if len(s) else 0.0,
+        tracking=_tracking(sig, w),
+        disturbance=_disturbance(log, sig, w),
+        saturated=int(np.count_nonzero(flags & FLAG_SATURATED)),
+        overruns=int(np.count_nonzero(flags & FLAG_OVERRUN)),
+        feedback_missing=int(np.count_nonzero(~sig.has_feedback[w])),
+        skipped=skipped,
+        dropped=dropped,
+        timing=_timing(log, sig, first),
+        bus=bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
+        truth_samples=int(np.count_nonzero(sig.has_truth[w])),
+        extra={**_per_axis(log, sig, w), "timing_percentiles": "exact"},
+    )
+    return assemble_metrics(log, from_s, figures)
+
+
+def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[str, Any]:
+    """The metrics dictionary of the module docstring from the window's figures."""
+    n = f.samples
+    warnings = list(log.warnings)
+    notes: list[str] = []
+    if n == 0:
+        warnings.append(
+            f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
+        )
+    rms, emax, source, used = f.tracking
     if source == "measured":
         notes.append("no ground truth: tracking error against the measured output")
     if log.mode == "lockstep":
@@ -262,31 +313,35 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
             "lockstep run: latency and jitter are host wall-clock times of a simulation "
             "running faster than real time, not real-time behaviour"
         )
-    t = sig.t_s[w]
+    has_window = n > 0 and f.t_first_s is not None and f.t_last_s is not None
     metrics: dict[str, Any] = {
         "file": str(log.path),
         "scenario": log.scenario,
         "mode": log.mode,
         "dob_enabled": log.dob_enabled,
         "complete": bool(log.data.complete),
-        "window_start_s": float(t[0]) if n else None,
+        "window_start_s": f.t_first_s if has_window else None,
         "samples": n,
-        "duration_s": float(t[-1] - t[0]) + log.period_ns * 1e-9 if n else 0.0,
+        "duration_s": (
+            float(f.t_last_s - f.t_first_s) + log.period_ns * 1e-9  # type: ignore[operator]
+            if has_window
+            else 0.0
+        ),
         "tracking_error_rms": rms,
         "tracking_error_max": emax,
         "tracking_error_source": source,
-        **_disturbance(log, sig, w),
-        "saturated_fraction": float(np.count_nonzero(flags & FLAG_SATURATED)) / n if n else None,
-        "overruns": int(np.count_nonzero(flags & FLAG_OVERRUN)),
-        "feedback_missing": int(np.count_nonzero(~sig.has_feedback[w])),
-        "skipped_samples": skipped,
-        "dropped_samples": dropped,
+        **f.disturbance,
+        "saturated_fraction": float(f.saturated) / n if n else None,
+        "overruns": f.overruns,
+        "feedback_missing": f.feedback_missing,
+        "skipped_samples": f.skipped,
+        "dropped_samples": f.dropped,
         "log_dropped_records": _int_or_none(log.summary.get("dropped_records")),
-        **_timing(log, sig, first),
-        "bus_load": bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
-        "truth_samples": int(np.count_nonzero(sig.has_truth[w])),
+        **f.timing,
+        "bus_load": f.bus,
+        "truth_samples": f.truth_samples,
         "tracking_error_samples": used,
-        **_per_axis(log, sig, w),
+        **f.extra,
         "notes": notes,
         "warnings": warnings,
     }

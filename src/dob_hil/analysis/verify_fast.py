@@ -119,6 +119,20 @@ def _c_times(C_rows: list[tuple[float, ...]], x_bar: FloatArray) -> FloatArray:
     return out
 
 
+def reference_rows(reference: Reference, seq: npt.NDArray[np.int64]) -> FloatArray:
+    """``reference.at(k)`` for each k of ``seq`` (bit for bit): one vectorised
+    :meth:`Reference.block` over the span of ``seq`` when it is not much longer than the block
+    (gaps are few), else one ``at`` per sample."""
+    n = len(seq)
+    if n == 0:
+        return np.zeros((0, 0), dtype=np.float64)
+    lo, hi = int(seq.min()), int(seq.max())
+    span = hi - lo + 1
+    if span <= 4 * n + 1024:
+        return np.asarray(reference.block(lo, span), dtype=np.float64)[seq - lo]
+    return np.asarray([reference.at(k) for k in seq.tolist()], dtype=np.float64)
+
+
 def _block(
     s: npt.NDArray[np.void],
     step: StepFunctions,
@@ -147,7 +161,10 @@ def _block(
     prev = np.empty(n, dtype=np.int64)
     prev[0] = carry.prev_seq if carry.prev_seq is not None else -1
     prev[1:] = seq[:-1]
-    restart = (prev + 1 != seq) & np.isin(seq, np.fromiter(resumed, dtype=np.int64), invert=True)
+    restart = prev + 1 != seq
+    if restart.any():  # a gap: a restart unless the runner explained it
+        at = np.flatnonzero(restart)
+        restart[at] = np.isin(seq[at], np.fromiter(resumed, dtype=np.int64), invert=True)
     if carry.prev_seq is None:
         restart[0] = False
     resyncs.extend(seq[restart].tolist())
@@ -236,8 +253,7 @@ def _block(
         same(np.asarray(s["u_applied_a"], dtype=np.float64).reshape(n, m), applied_out),
         same(np.asarray(s["dac_counts"]).reshape(n, m), codes_out),
         bool(np.array_equal((flags & FLAG_SATURATED) != 0, sat_out)),
-        reference is None
-        or same(x_ref, np.asarray([reference.at(k) for k in seq.tolist()], dtype=np.float64)),
+        reference is None or same(x_ref, reference_rows(reference, seq)),
     )
     if not all(checks):
         return False

@@ -6,6 +6,9 @@ in the order given, with the keys documented in :mod:`dob_hil.analysis.metrics` 
 (the PNG paths written, the same list for every log; empty with ``--no-plots``). Numbers that
 the log cannot give are ``null``. Plots go to ``--plots DIR``, by default to a folder beside the
 first log: ``<stem>-plots/`` (one log) or ``<stem1>-vs-<stem2>-plots/`` (several, overlaid).
+
+Without plots, a log of more than ``STREAM_ABOVE_SAMPLES`` samples is analysed streamed, in memory
+independent of its length (:mod:`dob_hil.analysis.streamed`); with plots, logs are read whole.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +42,37 @@ def _clean(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_clean(v) for v in value]
     return value
+
+
+# Logs of more samples than this are analysed streamed (bounded memory, dob_hil.analysis.streamed)
+# when no plots are asked for; shorter ones are read whole (the figures are the same; sums of
+# squares may differ in the last bits between the two paths).
+STREAM_ABOVE_SAMPLES = 100_000
+
+
+def _x_ref_blocks(log: Any) -> Iterator[Any]:
+    if len(log.data.samples):
+        yield log.data.samples["x_ref"]
+        return
+    from dob_hil.analysis.streamed import x_ref_blocks
+
+    yield from x_ref_blocks(log.path)
+
+
+def same_prefix(a: Iterator[Any], b: Iterator[Any]) -> bool:
+    """Whether two streams of arrays (blocks of rows) agree on the rows both hold (numpy's
+    ``array_equal`` of the common prefix: NaN never equals)."""
+    import numpy as np
+
+    left = next(a, None)
+    right = next(b, None)
+    while left is not None and right is not None:
+        n = min(len(left), len(right))
+        if not np.array_equal(left[:n], right[:n]):
+            return False
+        left = left[n:] if len(left) > n else next(a, None)
+        right = right[n:] if len(right) > n else next(b, None)
+    return True
 
 
 def comparison_warnings(logs: list[Any]) -> list[str]:
@@ -73,11 +108,23 @@ def comparison_warnings(logs: list[Any]) -> list[str]:
                 out.append(
                     f"{log.path.name} measures in {b.output_unit!r}, {first.path.name} in {a.output_unit!r}"
                 )
-        s1, s2 = first.data.samples, log.data.samples
-        n = min(len(s1), len(s2))
-        if n and not np.array_equal(s1["x_ref"][:n], s2["x_ref"][:n]):
+        if not same_prefix(_x_ref_blocks(first), _x_ref_blocks(log)):
             out.append(f"{log.path.name} and {first.path.name} follow different references")
     return out
+
+
+def indexed_samples(path: Path) -> int:
+    """How many samples the log's message indexes count (0 for a file that is no log: the
+    reading proper then reports it)."""
+    from dob_hil.errors import DobHilError
+    from dob_hil.log.schemas import TOPIC_SAMPLE
+    from dob_hil.log.stream import open_stream
+
+    try:
+        with open_stream(path, {TOPIC_SAMPLE: ("seq",)}, events=False) as stream:
+            return stream.counts.get(TOPIC_SAMPLE, 0)
+    except DobHilError:
+        return 0
 
 
 def analyze_logs(
@@ -108,11 +155,28 @@ def analyze_logs(
         from dob_hil.commands.paths import ensure_dir
 
         ensure_dir(plots_dir if plots_dir is not None else default_plots_dir(paths), "--plots")
-    logs = [load_log(p, fields=ANALYSIS_FIELDS) for p in paths]
+    logs: list[Any] = []
+    results: list[dict[str, Any]] = []
+    signals: list[Any] = []
+    for p in paths:
+        if not plots and indexed_samples(p) > STREAM_ABOVE_SAMPLES:
+            from dob_hil.analysis.streamed import analyze_streamed
+
+            log, metrics = analyze_streamed(p, from_s)
+        else:
+            log = load_log(p, fields=ANALYSIS_FIELDS)
+            sig = derive_signals(log)
+            metrics = compute_metrics(log, from_s, sig)
+            if plots:
+                signals.append(sig)
+            else:  # nothing else needs the arrays: let them go before the next log
+                for name in ("samples", "frames", "truth", "fd_frames"):
+                    setattr(log.data, name, getattr(log.data, name)[:0].copy())
+                del sig
+        logs.append(log)
+        results.append(_clean(metrics))
     for warning in comparison_warnings(logs):
         print(f"dob-hil analyze: warning: {warning}", file=sys.stderr)
-    signals = [derive_signals(log) for log in logs]
-    results = [_clean(compute_metrics(log, from_s, sig)) for log, sig in zip(logs, signals, strict=True)]
     for log, metrics in zip(logs, results, strict=True):
         for warning in metrics["warnings"]:
             print(f"dob-hil analyze: warning: {log.path}: {warning}", file=sys.stderr)

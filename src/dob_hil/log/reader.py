@@ -111,6 +111,7 @@ class _Fixed:
     out: StructArray
     filled: int = 0
     record_dtype: np.dtype[np.void] | None = None  # the message layout, where dtype is a subset
+    counted: int = 0  # messages the chunks' indexes count
 
     def reserve(self, extra: int) -> None:
         if self.filled + extra > len(self.out):
@@ -190,7 +191,7 @@ def iter_channel(
         reader = _Reader(mm, str(path), {topic}, verify_crc, keep)
         reader._learn_channels()
         layout = reader._layout()
-        fixed, _ = reader._outputs(layout)
+        fixed, _ = reader._outputs(layout, preallocate=False)
         for group in reader._groups():
             table = reader._table(group)
             for out in fixed.values():
@@ -317,7 +318,9 @@ class _Reader:
                 )
         return layout
 
-    def _outputs(self, layout: LogLayout) -> tuple[dict[int, _Fixed], int | None]:
+    def _outputs(self, layout: LogLayout, preallocate: bool = True) -> tuple[dict[int, _Fixed], int | None]:
+        """The outputs of the channels read (arrays of the indexed message counts, or empty
+        ones with ``preallocate`` False; ``out.counted`` holds the count) and the event channel."""
         counts: dict[int, int] = {}
         for chunk in self.fmap.chunks:
             for channel_id, (_, count) in chunk.indexes.items():
@@ -345,10 +348,11 @@ class _Reader:
                 )
                 continue
             n = counts.get(channel.id, 0)
+            size = n if preallocate else 0
             keep = self.fields.get(channel.topic)
             if keep is None:
                 fixed[channel.id] = _Fixed(
-                    channel.id, channel.topic, dtype, 4 + dtype.itemsize, np.zeros(n, dtype)
+                    channel.id, channel.topic, dtype, 4 + dtype.itemsize, np.zeros(size, dtype), counted=n
                 )
                 continue
             assert dtype.fields is not None
@@ -360,7 +364,7 @@ class _Reader:
                 )
             subset = np.dtype([(name, dtype.fields[name][0]) for name in keep])
             fixed[channel.id] = _Fixed(
-                channel.id, channel.topic, subset, 4 + dtype.itemsize, np.zeros(n, subset), 0, dtype
+                channel.id, channel.topic, subset, 4 + dtype.itemsize, np.zeros(size, subset), 0, dtype, n
             )
         return fixed, event_channel
 
