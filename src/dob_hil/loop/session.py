@@ -196,6 +196,9 @@ def _truth_sink(log: LogWriter) -> Callable[[Any], None]:
 
     def sink(t: Any) -> None:
         period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+        if type(disturbance_A) is tuple:  # a multi-axis drive: one value per input already
+            write(time_ns, state, disturbance_A, applied_A, period_index, drive_state)
+            return
         write(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
 
     return sink

@@ -15,6 +15,15 @@ if TYPE_CHECKING:
 
 
 def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hook: EventHook) -> DriveLink:
+    """One node for a single-input plant; one node per axis (``drive.node_ids``) for N inputs."""
+    from dob_hil.link.axes import check_square
+
+    n_axes = check_square(config.plant)
+    if n_axes > 1:
+        from dob_hil.link.native_axes import MultiAxisNativeLink
+
+        return MultiAxisNativeLink(bus, config.drive, n_axes, frame_hook=frame_hook, event_hook=event_hook,
+                                   owns_bus=True)  # fmt: skip
     from dob_hil.link.native import NativeDriveLink
 
     return NativeDriveLink(bus, config.drive, frame_hook=frame_hook, event_hook=event_hook, owns_bus=True)
@@ -23,16 +32,16 @@ def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hoo
 def _make_sim(
     bus: can.BusABC, config: Config, clock: str, truth_sink: TruthSink | None
 ) -> SimulatedCounterpart:
-    from firmware_sim import SimulatedDrive
+    from firmware_sim.axes import make_simulated_drive
 
-    return SimulatedDrive(bus, config, clock="realtime" if clock == "realtime" else "lockstep",
-                          truth_sink=truth_sink)  # fmt: skip
+    return make_simulated_drive(bus, config, clock="realtime" if clock == "realtime" else "lockstep",
+                                truth_sink=truth_sink)  # fmt: skip
 
 
 def _bus_load(config: Config) -> BusLoad:
     from dob_hil.link.busload import worst_case_bus_load
 
-    return worst_case_bus_load(config.drive, config.plant.period_ns)
+    return worst_case_bus_load(config.drive, config.plant.period_ns, n_axes=config.plant.n_inputs)
 
 
 PROFILE = DriveProfile(

@@ -1,0 +1,110 @@
+"""The coupled plant of a multi-axis drive: ``x' = A x + B (u + w)`` with N currents in, N outputs.
+
+:class:`CoupledPlantModel` is :class:`firmware_sim.plant.PlantModel` (the same cells, splits,
+midpoint disturbance and caches) with a current *vector* ``u`` (one per axis) and a disturbance
+vector ``w`` (each ``[[sim.disturbance]]`` on its ``input_index``), in numpy. Axis i reads output
+i, ``C[i] @ x``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import cast
+
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.config import PlantConfig
+from dob_hil.link.axes import check_square
+from firmware_sim.disturbance import Disturbance
+from firmware_sim.plant import DISTURBANCE_BLOCK, PlantModel, zoh
+
+Vector = npt.NDArray[np.float64]
+
+
+class InputDisturbances:
+    """One :class:`Disturbance` per plant input, read together as a vector per instant."""
+
+    def __init__(self, per_input: Sequence[Disturbance]) -> None:
+        self.per_input = tuple(per_input)
+
+    @property
+    def is_zero(self) -> bool:
+        return all(d.is_zero or d.origin_s is None for d in self.per_input)
+
+    def values_A(self, t_s: Vector) -> npt.NDArray[np.float64]:
+        """Shape ``(len(t_s), n_inputs)``."""
+        return np.stack([d.values_A(t_s) for d in self.per_input], axis=1)
+
+    def value_A(self, t_s: float) -> tuple[float, ...]:
+        return tuple(d.value_A(t_s) for d in self.per_input)
+
+
+class CoupledPlantModel(PlantModel):
+    """The true state of a square multi-input plant (module docstring)."""
+
+    def __init__(
+        self,
+        plant: PlantConfig,
+        substeps: int,
+        disturbances: InputDisturbances,
+        initial_state: Sequence[float] | None = None,
+    ) -> None:
+        self.n_inputs = plant.n_inputs
+        self._C = np.asarray(plant.C, dtype=np.float64)
+        self.inputs = disturbances
+        super().__init__(plant, substeps, cast(Disturbance, disturbances), initial_state)
+        self._m2 = None  # the unrolled 2-state path is single-input
+        self._xv: Vector = np.asarray(self._x, dtype=np.float64)
+
+    @staticmethod
+    def _check_plant(plant: PlantConfig) -> None:
+        check_square(plant)
+
+    # --- read-out ------------------------------------------------------------------------------
+    @property
+    def state(self) -> tuple[float, ...]:
+        return tuple(self._xv.tolist())
+
+    def output(self, axis: int) -> float:
+        """Output ``axis``, ``C[axis] @ x``, in the plant's output unit."""
+        return float(self._C[axis] @ self._xv)
+
+    def position(self) -> float:
+        return self.output(0)
+
+    # --- integration ---------------------------------------------------------------------------
+    def advance_vector(self, t0_ns: int, t1_ns: int, currents_A: Sequence[float]) -> None:
+        """Integrate from ``t0_ns`` to ``t1_ns`` with one held current per axis (plus disturbances)."""
+        self.advance(t0_ns, t1_ns, cast(float, np.asarray(currents_A, dtype=np.float64)))
+
+    def _load_w_block(self, block: int) -> None:
+        first = block * DISTURBANCE_BLOCK
+        t_s = (np.arange(first, first + DISTURBANCE_BLOCK, dtype=np.float64) + 0.5) * self.cell_s
+        self._w_block = cast(list[float], self.inputs.values_A(t_s))
+        self._w_block_index = block
+
+    def _cells(self, j0: int, j1: int, u: float) -> None:
+        if j1 <= j0:
+            return
+        phi, gam = cast(tuple[Vector, Vector], self._full)
+        if self.inputs.is_zero:
+            drive = gam @ np.asarray(u, dtype=np.float64)
+            x = self._xv
+            for _ in range(j0, j1):
+                x = phi @ x + drive
+        else:
+            v = np.asarray(self._w_cells(j0, j1), dtype=np.float64) + np.asarray(u, dtype=np.float64)
+            drives = v @ gam.T
+            x = self._xv
+            for d in drives:
+                x = phi @ x + d
+        self._xv = x
+
+    def _step(self, mats: object, v: float) -> None:
+        phi, gam = cast(tuple[Vector, Vector], mats)
+        self._xv = phi @ self._xv + gam @ np.asarray(v, dtype=np.float64)
+
+    def _matrices(self, h_s: float) -> tuple[list[list[float]], list[float]]:
+        Phi, Gam = zoh(self._A, self._B, h_s)
+        return cast(tuple[list[list[float]], list[float]], (Phi, Gam))
