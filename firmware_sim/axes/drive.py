@@ -113,9 +113,11 @@ class MultiAxisDrive(ClockedDrive[MultiAxisLockstepClock, MultiAxisRealtimeClock
 
     @property
     def applied_currents_A(self) -> tuple[float, ...]:
-        """The current each axis applies now (lockstep read-out, for tests)."""
-        assert self._lockstep is not None, "lockstep only"
-        return tuple(p.held_A for p in self._lockstep.core.paths)
+        """The current each axis holds once the changes already commanded are due (for tests)."""
+        if self._realtime is not None:
+            return self._realtime.axis_snapshot()[2]
+        assert self._lockstep is not None
+        return tuple(p.final_A for p in self._lockstep.core.paths)
 
 
 def make_simulated_drive(

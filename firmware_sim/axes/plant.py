@@ -56,6 +56,15 @@ class CoupledPlantModel(PlantModel):
         super().__init__(plant, substeps, cast(Disturbance, disturbances), initial_state)
         self._m2 = None  # the unrolled 2-state path is single-input
         self._xv: Vector = np.asarray(self._x, dtype=np.float64)
+        phi = cast(tuple[Vector, Vector], self._full)[0]
+        powers = [np.eye(self.n_states)]
+        for _ in range(substeps):
+            powers.append(phi @ powers[-1])
+        self._powers = np.stack(powers)
+
+    def finite(self) -> bool:
+        """Every state is a finite number (the physics did not overflow)."""
+        return bool(np.all(np.isfinite(self._xv)) and np.all(np.abs(self._xv) < 1e300))
 
     @staticmethod
     def _check_plant(plant: PlantConfig) -> None:
@@ -85,20 +94,24 @@ class CoupledPlantModel(PlantModel):
         self._w_block_index = block
 
     def _cells(self, j0: int, j1: int, u: float) -> None:
-        if j1 <= j0:
+        """Cells j0 .. j1-1: ``x_L = Phi^L x_0 + sum_j Phi^(L-1-j) Gam v_j`` in one product for up
+        to one period of cells (the powers of Phi are computed once), cell by cell beyond."""
+        n_cells = j1 - j0
+        if n_cells <= 0:
             return
         phi, gam = cast(tuple[Vector, Vector], self._full)
+        u_vec = np.asarray(u, dtype=np.float64)
         if self.inputs.is_zero:
-            drive = gam @ np.asarray(u, dtype=np.float64)
-            x = self._xv
-            for _ in range(j0, j1):
-                x = phi @ x + drive
+            drives = np.broadcast_to(gam @ u_vec, (n_cells, self.n_states))
         else:
-            v = np.asarray(self._w_cells(j0, j1), dtype=np.float64) + np.asarray(u, dtype=np.float64)
-            drives = v @ gam.T
-            x = self._xv
-            for d in drives:
-                x = phi @ x + d
+            drives = (np.asarray(self._w_cells(j0, j1), dtype=np.float64) + u_vec) @ gam.T
+        if n_cells <= self.substeps:
+            powers = self._powers  # powers[k] = Phi^k, k = 0 .. substeps
+            self._xv = powers[n_cells] @ self._xv + np.einsum("jab,jb->a", powers[n_cells - 1 :: -1], drives)
+            return
+        x = self._xv
+        for d in drives:
+            x = phi @ x + d
         self._xv = x
 
     def _step(self, mats: object, v: float) -> None:

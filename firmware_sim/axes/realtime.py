@@ -46,9 +46,11 @@ class MultiAxisRealtimeClock(ThreadedDriveClock):
             c = self.core
             return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
-    def axis_snapshot(self) -> tuple[tuple[DriveState, ...], list[DriveStats]]:
+    def axis_snapshot(self) -> tuple[tuple[DriveState, ...], list[DriveStats], tuple[float, ...]]:
+        """Each axis's state, counters and current (once the changes commanded are due)."""
         with self._lock:
-            return self.core.states, self.core.axis_stats()
+            c = self.core
+            return c.states, c.axis_stats(), tuple(p.final_A for p in c.paths)
 
     def _silent(self) -> bool:
         return self.core.silent

@@ -13,9 +13,11 @@ enable and stop sequences), composed here over one bus:
 * **One feedback per period.** :meth:`MultiAxisNativeLink.receive_feedback` collects each axis's
   FEEDBACK by sequence number and returns one :class:`~dob_hil.link.base.Feedback` with every
   axis's counts once every axis's FEEDBACK of the same period has arrived; it never mixes periods.
-  A period still incomplete when a newer one completes, or when a wait of ``timeout_ns > 0``
-  ends, is missing (an INCOMPLETE event, ``stats.incomplete_periods``); its late frames are
-  discarded as stale, as is feedback older than the last period delivered.
+  A period still incomplete when a newer one completes, or for longer than the host timeout
+  (``drive.feedback_timeout_periods`` periods after its first FEEDBACK), is missing (a
+  STALE_FEEDBACK event, ``stats.incomplete_periods``); its late frames are discarded as stale, as
+  is feedback older than the last period delivered. A period completed late (an axis's frame
+  delayed, within the timeout) is delivered late, as one drive's late feedback is.
 * **Commands.** :meth:`quantize` quantizes and limits each axis's current with that axis's DAC and
   the configured limit; :meth:`send_command` sends one COMMAND per axis answering the period.
 * **All or nothing.** enable / enable_lockstep / safe_stop / close act on every axis; an axis that
@@ -203,7 +205,10 @@ class MultiAxisNativeLink:
         owns_bus: bool = False,
         stale_window: int = DEFAULT_STALE_WINDOW,
         send_timeout_ns: int | None = None,
+        period_ns: int | None = None,
     ) -> None:
+        """``period_ns``: the control period, for the host timeout of an incomplete period
+        (``drive.feedback_timeout_periods * period_ns``; None: only a newer period ends it)."""
         self.node_ids = axis_node_ids(drive, n_axes)
         self.n_axes = n_axes
         self._drive = drive
@@ -228,6 +233,8 @@ class MultiAxisNativeLink:
         ]
         self.stats.axes = [axis.stats for axis in self.axes]
         self._open: dict[int, list[Feedback | None]] = {}  # seq -> each axis's feedback, oldest first
+        self._opened_ns: dict[int, int] = {}  # seq -> receipt time of its first FEEDBACK
+        self._partial_timeout_ns = None if period_ns is None else drive.feedback_timeout_periods * period_ns
         self._floor_seq: int | None = None  # the newest period delivered or given up
         self._closed = False
 
@@ -275,13 +282,23 @@ class MultiAxisNativeLink:
             done = self._take_complete()
             if done is not None:
                 return done
+            self._expire()
             if not deadline_ns:
                 return None
             remaining_ns = deadline_ns - time.monotonic_ns()
             if remaining_ns <= 0:
-                self._give_up(list(self._open), "not complete when the host's wait ended")
                 return None
             self._router.wait(remaining_ns * 1e-9)
+
+    def _expire(self) -> None:
+        """Give up the periods incomplete for longer than the host timeout."""
+        limit = self._partial_timeout_ns
+        if limit is None or not self._open:
+            return
+        now_ns = self._clock_ns()
+        old = [seq for seq, t in self._opened_ns.items() if now_ns - t > limit]
+        if old:
+            self._give_up(old, f"past the host timeout of {limit / 1e6:g} ms")
 
     def _check_faults(self) -> None:
         for axis in self.axes:
@@ -306,6 +323,7 @@ class MultiAxisNativeLink:
             if len(self._open) >= MAX_OPEN_PERIODS:
                 self._give_up([next(iter(self._open))], "too many periods open")
             slot = self._open[seq] = [None] * self.n_axes
+            self._opened_ns[seq] = fb.rx_time_ns
         slot[axis] = fb
 
     def _take_complete(self) -> Feedback | None:
@@ -317,7 +335,7 @@ class MultiAxisNativeLink:
                         break
                     older.append(s)
                 self._give_up(older, f"period {seq} completed first")
-                del self._open[seq]
+                del self._open[seq], self._opened_ns[seq]
                 self._floor_seq = seq
                 self.stats.periods += 1
                 return _combine(seq, [f for f in slot if f is not None])
@@ -326,6 +344,7 @@ class MultiAxisNativeLink:
     def _give_up(self, seqs: list[int], why: str) -> None:
         for seq in seqs:
             slot = self._open.pop(seq)
+            del self._opened_ns[seq]
             missing = [self.node_ids[i] for i, f in enumerate(slot) if f is None]
             self.stats.incomplete_periods += 1
             if self._floor_seq is None or _newer(seq, self._floor_seq):
@@ -338,6 +357,7 @@ class MultiAxisNativeLink:
 
     def _reset_periods(self) -> None:
         self._open.clear()
+        self._opened_ns.clear()
         self._floor_seq = None
 
     # --- quantizing and sending --------------------------------------------------------------------
@@ -365,10 +385,15 @@ class MultiAxisNativeLink:
 
     # --- enable, stop ------------------------------------------------------------------------------
     def enable(self, timeout_ns: int) -> None:
-        """Enable every axis (each as :meth:`NativeDriveLink.enable`); any failure stops them all."""
+        """Enable every axis: CONTROL enable to every node at once, then each as
+        :meth:`NativeDriveLink.enable` (ClearFault first with ``drive.clear_fault``, the request
+        repeated until its node reports enabled); any failure stops every axis."""
         deadline_ns = time.monotonic_ns() + timeout_ns
         self._reset_periods()
         try:
+            if not self._drive.clear_fault:
+                for axis in self.axes:  # every node at once; enable() below repeats and waits
+                    axis.request_enable()
             for axis in self.axes:
                 axis.enable(max(deadline_ns - time.monotonic_ns(), 1))
         except BaseException:

@@ -23,7 +23,7 @@ def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hoo
         from dob_hil.link.native_axes import MultiAxisNativeLink
 
         return MultiAxisNativeLink(bus, config.drive, n_axes, frame_hook=frame_hook, event_hook=event_hook,
-                                   owns_bus=True)  # fmt: skip
+                                   owns_bus=True, period_ns=config.plant.period_ns)  # fmt: skip
     from dob_hil.link.native import NativeDriveLink
 
     return NativeDriveLink(bus, config.drive, frame_hook=frame_hook, event_hook=event_hook, owns_bus=True)
