@@ -23,7 +23,7 @@ Differences from one drive, all of them about the shared plant and clock:
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import NamedTuple, cast
+from typing import cast
 
 from dob_hil.config import Config, FaultsConfig
 from dob_hil.link.axes import axis_node_ids, check_square
@@ -33,19 +33,11 @@ from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import DriveCore, DriveStats, FrameResult
 from firmware_sim.disturbance import Disturbance
 from firmware_sim.plant import PlantModel
+from firmware_sim.truth import AxesTruth
 
 OutgoingId = tuple[int, bytes]  # (arbitration id, payload)
 
-
-class AxesTruth(NamedTuple):
-    """Ground truth of one sample instant of every axis (the log's truth record, per input)."""
-
-    period_index: int
-    time_ns: int
-    state: tuple[float, ...]  # the coupled plant's true state
-    disturbance_A: tuple[float, ...]  # per input
-    applied_current_A: tuple[float, ...]  # per input, acting just before the instant
-    drive_state: DriveState  # FAULT if any axis is, ENABLED if all are, else DISABLED
+__all__ = ["AxesTruth", "MultiAxisCore", "axis_config"]
 
 
 class _AxisOutput:

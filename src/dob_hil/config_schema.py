@@ -216,9 +216,6 @@ SCHEMA: tuple[SectionSpec, ...] = (
         _f("profile", "string", "Drive profile: wire format and simulated counterpart.",
            default="native"),
         _f("node_id", "integer", "CAN node id of the drive.", default=1, low=0, high=127),
-        _f("node_ids", "integers", "Several axes (a plant with N > 1 inputs, one per output): "
-           "the CAN node id of each axis, distinct, axis i = input i and output i (native: "
-           "0..15).", low=0, high=127, default="node_id + i", example="[1, 2]"),
         _f("bitrate_bps", "integer", "CAN bitrate, for the bus-load check.", unit="bit/s",
            default=1_000_000, low=10_000, high=8_000_000),
         _f("current_limit_A", "number", "Largest current ever commanded; at most 32767 DAC LSBs.",
@@ -235,6 +232,9 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "without feedback.", unit="periods", default=10, low=1, high=100_000),
         _f("clear_fault", "boolean", "Clear a fault the drive reports (e.g. one left by a killed "
            "run) before enabling; `dob-hil run --clear-fault` sets it.", default=False),
+        _f("node_ids", "integers", "Several axes (a plant with N > 1 inputs, one per output): "
+           "the CAN node id of each axis, distinct, axis i = input i and output i (native: "
+           "0..15).", low=0, high=127, default="node_id + i", example="[1, 2]"),
     )),
     SectionSpec("sim", "The simulated drive (`firmware_sim`): plant integration and impairments.", (
         _f("substeps", "integer", "Integration substeps per period (ground-truth resolution).",
