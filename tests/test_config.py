@@ -235,13 +235,15 @@ def test_every_schema_key_is_read_by_the_parser(monkeypatch: pytest.MonkeyPatch)
     original = config_module._Section.finish
 
     def spy(self: Any) -> None:
-        asked[self.path] = list(self.asked)
+        asked.setdefault(self.path, []).extend(k for k in self.asked if k not in asked.get(self.path, []))
         original(self)
 
     monkeypatch.setattr(config_module._Section, "finish", spy)
     data = paper()
     data["sim"]["faults"] = {"fault_at_s": 0.5}
     data["reference"] = {"kind": "step"}
+    parse_config(data)
+    data["reference"] = {"outputs": [{"kind": "step"}]}  # [[reference.outputs]] instead of [reference]
     parse_config(data)
     for spec in SCHEMA:
         path = spec.path.replace("[]", "[0]")

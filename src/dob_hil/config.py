@@ -200,6 +200,8 @@ class ReferenceConfig:
     frequency_hz: float = 1.0
     offset: float = 0.0
     csv_path: Path | None = None
+    # [[reference.outputs]]: one command per plant output (empty: output 0 from the keys above)
+    outputs: tuple[ReferenceConfig, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -492,6 +494,36 @@ def _parse_faults(s: _Section) -> FaultsConfig:
 
 
 def _parse_reference(s: _Section, base_dir: Path, plant: PlantConfig) -> ReferenceConfig:
+    """``[reference]`` (output 0) or ``[[reference.outputs]]`` (one table per output), not both."""
+    s._ask("outputs")
+    if not s.has("outputs"):
+        return _parse_one_reference(s, base_dir, plant)
+    raw = s.raw("outputs")
+    if not isinstance(raw, list):
+        raise ConfigError(s.name("outputs"), "expected an array of tables [[reference.outputs]]")
+    if len(raw) != plant.n_outputs:
+        raise ConfigError(
+            s.name("outputs"),
+            f"expected {plant.n_outputs} tables, one per plant output (the plant has "
+            f"{plant.n_outputs} outputs), got {len(raw)}",
+        )
+    default = ReferenceConfig()
+    for key in ("kind", "position", "start_s", "amplitude", "frequency_hz", "offset", "path"):
+        if s.has(key) and (key == "path" or s.get(key) != getattr(default, key)):
+            raise ConfigError(
+                s.name(key),
+                f"give either {s.name('outputs')} (one table per output) or the single-output "
+                f"{s.name(key)}, not both",
+            )
+    outputs = tuple(
+        _parse_one_reference(_Section(item, f"{s.name('outputs')}[{i}]"), base_dir, plant)
+        for i, item in enumerate(raw)
+    )
+    s.finish()
+    return ReferenceConfig(outputs=outputs)
+
+
+def _parse_one_reference(s: _Section, base_dir: Path, plant: PlantConfig) -> ReferenceConfig:
     kind: str = s.get("kind")
     csv_path: Path | None = None
     rel: str | None = s.get("path")

@@ -114,7 +114,10 @@ def render_template() -> str:
         "# The values below are the paper's motor (Lee, Kim, Baek, ACC 2000): replace them with yours.",
     ]
     for spec in SCHEMA:
-        out += ["", *(f"# {line}" for line in _wrap(spec.doc)), _table_header(spec)]
+        header = _table_header(spec)
+        if spec.path.endswith("[]") and not any(f.example or f.default == REQUIRED for f in spec.fields):
+            header = f"# {header}"  # an optional array of tables whose keys are all commented
+        out += ["", *(f"# {line}" for line in _wrap(spec.doc)), header]
         for f in spec.fields:
             unit = f" [{f.unit}]" if f.unit else ""
             rng = f" Range: {f.range_text()}." if f.range_text() else ""

@@ -110,6 +110,22 @@ _M = MAX_MATRIX_ENTRY
 _T = MAX_TIME_S
 
 # fmt: off
+_REFERENCE_FIELDS: tuple[Field, ...] = (
+    _f("kind", "string", "`step`, `sine` or `csv`.", default="step", choices=REFERENCE_KINDS),
+    _f("position", "number", "Step: target position.", unit="output unit", default=1.0,
+       low=-1e6, high=1e6),
+    _f("start_s", "number", "Step: time of the step.", unit="s", default=0.0, low=0.0, high=_T),
+    _f("amplitude", "number", "Sine: amplitude.", unit="output unit", default=1.0, low=-1e6,
+       high=1e6),
+    _f("frequency_hz", "number", "Sine: frequency, below the Nyquist frequency 1/(2 period).",
+       unit="Hz", default=1.0, low=0.0, high=1e6),
+    _f("offset", "number", "Sine: offset.", unit="output unit", default=0.0, low=-1e6,
+       high=1e6),
+    _f("path", "string", "CSV: a UTF-8 file, relative to the config, with the header "
+       "`time_s,position` or `time_s,position,velocity`, times increasing; interpolated "
+       "linearly, held after its last row. Required with kind = csv."),
+)
+
 SCHEMA: tuple[SectionSpec, ...] = (
     SectionSpec("meta", "What the config is called.", (
         _f("name", "string", "Name of the run: the default log file name and the plots' titles. "
@@ -281,22 +297,14 @@ SCHEMA: tuple[SectionSpec, ...] = (
         _f("encoder_jump_counts", "integer", "Size of the encoder jump (required with its time).",
            unit="counts", default=0, low=-(2**31), high=2**31 - 1),
     )),
-    SectionSpec("reference", "The commanded output. For the paper's plant (position, velocity) the "
-                "reference state is [position, velocity].", (
-        _f("kind", "string", "`step`, `sine` or `csv`.", default="step", choices=REFERENCE_KINDS),
-        _f("position", "number", "Step: target position.", unit="output unit", default=1.0,
-           low=-1e6, high=1e6),
-        _f("start_s", "number", "Step: time of the step.", unit="s", default=0.0, low=0.0, high=_T),
-        _f("amplitude", "number", "Sine: amplitude.", unit="output unit", default=1.0, low=-1e6,
-           high=1e6),
-        _f("frequency_hz", "number", "Sine: frequency, below the Nyquist frequency 1/(2 period).",
-           unit="Hz", default=1.0, low=0.0, high=1e6),
-        _f("offset", "number", "Sine: offset.", unit="output unit", default=0.0, low=-1e6,
-           high=1e6),
-        _f("path", "string", "CSV: a UTF-8 file, relative to the config, with the header "
-           "`time_s,position` or `time_s,position,velocity`, times increasing; interpolated "
-           "linearly, held after its last row. Required with kind = csv."),
-    )),
+    SectionSpec("reference", "The commanded output 0 (the other outputs are held at zero). For the "
+                "paper's plant (position, velocity) the reference state is [position, velocity]; "
+                "in general x_ref = Nx r + Nv r' with the plant's steady-state map. To command "
+                "every output, give `[[reference.outputs]]` instead.", _REFERENCE_FIELDS),
+    SectionSpec("reference.outputs[]", "`[[reference.outputs]]`, one table per plant output, in "
+                "output order (exactly as many as the plant has outputs): each output's command, "
+                "with the keys of `[reference]` (which then keeps its defaults).",
+                _REFERENCE_FIELDS),
     SectionSpec("run", "The run.", (
         _f("duration_s", "number", "Run length (`--duration` overrides it).", unit="s",
            default=1.0, low=0.0, low_open=True, high=_T),
