@@ -13,11 +13,12 @@ from typing import cast
 
 import numpy as np
 import numpy.typing as npt
+import scipy.linalg
 
 from dob_hil.config import PlantConfig
 from dob_hil.link.axes import check_square
 from firmware_sim.disturbance import Disturbance
-from firmware_sim.plant import DISTURBANCE_BLOCK, PlantModel, zoh
+from firmware_sim.plant import DISTURBANCE_BLOCK, SPLIT_RESOLUTION_NS, PlantModel, zoh
 
 Vector = npt.NDArray[np.float64]
 
@@ -61,6 +62,28 @@ class CoupledPlantModel(PlantModel):
         for _ in range(substeps):
             powers.append(phi @ powers[-1])
         self._powers = np.stack(powers)
+
+    def precompute_splits(self) -> None:
+        """Compute every cell piece a current change inside a cell can need, so that a real-time
+        clock never computes a matrix exponential between two deadlines: one exponential of
+        ``SPLIT_RESOLUTION_NS`` and its powers (``E(k h) = E(h)^k`` for the augmented ``[[A, B],
+        [0, 0]]``), the cell's tails from the heads when the cell is a whole number of them."""
+        n, m = self.n_states, self.n_inputs
+        aug = np.zeros((n + m, n + m))
+        aug[:n, :n] = self._A
+        aug[:n, n:] = self._B
+        step = scipy.linalg.expm(aug * (SPLIT_RESOLUTION_NS * 1e-9))
+        power = np.eye(n + m)
+        heads: dict[int, tuple[Vector, Vector]] = {}
+        for k in range(1, self._split_max + 1):
+            power = power @ step
+            heads[k] = (power[:n, :n].copy(), power[:n, n:].copy())
+        for k, mats in heads.items():
+            self._head_cache.setdefault(k, cast(tuple[list[list[float]], list[float]], mats))
+        if self.cell_ns == self._split_max * SPLIT_RESOLUTION_NS:  # tail(k) = head(cell - k)
+            for k in range(1, self._split_max):
+                mats = heads[self._split_max - k]
+                self._tail_cache.setdefault(k, cast(tuple[list[list[float]], list[float]], mats))
 
     def finite(self) -> bool:
         """Every state is a finite number (the physics did not overflow)."""

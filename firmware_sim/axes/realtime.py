@@ -37,6 +37,7 @@ class MultiAxisRealtimeClock(ThreadedDriveClock):
         self.core = MultiAxisCore(
             config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
         )
+        self.core.plant.precompute_splits()  # commands act at their arrival, inside a cell
         self._stats = self.core.stats
         self._rx_ids = self.core.rx_ids
         self._feedback_ids = frozenset(self.core.feedback_ids)
