@@ -250,7 +250,7 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "run) before enabling; `dob-hil run --clear-fault` sets it.", default=False),
         _f("node_ids", "integers", "Several axes (a plant with N > 1 inputs, one per output): "
            "the CAN node id of each axis, distinct, axis i = input i and output i (native: "
-           "0..15).", low=0, high=127, default="node_id + i", example="[1, 2]"),
+           "0..15).", low=0, high=127, default="node_id + i"),
     )),
     SectionSpec("sim", "The simulated drive (`firmware_sim`): plant integration and impairments.", (
         _f("substeps", "integer", "Integration substeps per period (ground-truth resolution).",

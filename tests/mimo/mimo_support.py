@@ -59,6 +59,8 @@ def undisturbed_truth(data: LogData, settle_s: float) -> npt.NDArray[np.bool_]:
     ]
     upsets.append(np.array(host, dtype=np.int64))
     bad = np.sort(np.concatenate(upsets))
+    if bad.size == 0:  # an undisturbed run
+        return np.ones(len(t_ns), dtype=bool)
     i = np.searchsorted(bad, t_ns, side="right")
     last_bad = np.where(i > 0, bad[np.maximum(i - 1, 0)], np.iinfo(np.int64).min // 2)
     return np.asarray(t_ns - last_bad > settle_s * 1e9)

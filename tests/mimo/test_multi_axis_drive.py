@@ -174,3 +174,20 @@ def test_substeps_do_not_change_the_sampled_truth(substeps: int) -> None:
     other = _run_lockstep(mimo_config({**NO_DISTURBANCE, "substeps = 10": f"substeps = {substeps}"}),
                           (0.05, -0.05), 50)  # fmt: skip
     np.testing.assert_allclose([t.state for t in other], [t.state for t in base], rtol=1e-9, atol=1e-13)
+
+
+def test_the_axes_truth_datagram_round_trips_byte_for_byte() -> None:
+    import struct
+
+    from dob_hil.errors import ProtocolError
+    from firmware_sim.truth import decode_axes_truth, decode_truth, encode_axes_truth
+
+    truth = AxesTruth(7, 7_000_000, (1.0, 2.0, 3.0, 4.0), (0.1, -0.2), (0.5, 0.25), DriveState.ENABLED)
+    data = encode_axes_truth(truth)
+    head = b"FSGT" + bytes((2, 1)) + struct.pack("<HQqH", 4, 7, 7_000_000, 2) + bytes(6)
+    assert data == head + struct.pack("<8d", 0.1, -0.2, 0.5, 0.25, 1.0, 2.0, 3.0, 4.0)
+    assert decode_axes_truth(data) == truth
+    with pytest.raises(ProtocolError, match="version 2, expected 1"):
+        decode_truth(data)
+    with pytest.raises(ProtocolError, match="4 states and 2 inputs need 96 bytes, got 95"):
+        decode_axes_truth(data[:-1])
