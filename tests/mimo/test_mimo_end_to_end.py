@@ -141,6 +141,9 @@ def test_the_scenario_runs_from_the_command_line(tmp_path: Path, capsys: pytest.
     data = read_log(log)
     assert data.samples["position"].shape == (200, 2)
     assert data.metadata["summary"]["exit_reason"] == "completed"
+    # every logged command is what the controller computes from the logged feedback, per axis
+    assert cli.main(["replay", str(log), "--verify"]) == 0
+    assert "identical" in capsys.readouterr().out
 
 
 def test_the_scenario_at_the_papers_period_overloads_the_bus_and_is_refused(tmp_path: Path) -> None:

@@ -315,3 +315,19 @@ def test_the_profile_picks_the_multi_axis_link_and_drive(mimo: Config) -> None:
     assert isinstance(link, MultiAxisNativeLink) and link.node_ids == (1, 2)
     assert isinstance(sim, MultiAxisDrive) and sim.node_ids == (1, 2)
     link.close()
+
+
+def test_the_replay_quantizer_is_the_links_per_axis_and_dacquantizer_for_one_axis(pair, drive_cfg) -> None:  # type: ignore[no-untyped-def]
+    import random
+
+    from dob_hil.link.native import DacQuantizer
+    from dob_hil.link.native_axes import axes_quantizer
+
+    link = pair[0]
+    quantize = axes_quantizer(drive_cfg)
+    one = DacQuantizer(drive_cfg).quantize
+    rng = random.Random(3)
+    for _ in range(2000):
+        u = (rng.uniform(-1.0, 1.0), rng.choice([rng.uniform(-1.0, 1.0), 0.5 / 2048, -1.5 / 2048, 9.0]))
+        assert quantize(u) == link.quantize(u)
+        assert quantize(u[:1]) == one(u[:1])

@@ -40,7 +40,13 @@ from dob_hil.config import DriveConfig
 from dob_hil.errors import DriveFault, ProtocolError
 from dob_hil.link.axes import axis_node_ids
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
-from dob_hil.link.native import DEFAULT_STALE_WINDOW, MAX_CONSECUTIVE_RX_ERRORS, LinkStats, NativeDriveLink
+from dob_hil.link.native import (
+    DEFAULT_STALE_WINDOW,
+    MAX_CONSECUTIVE_RX_ERRORS,
+    DacQuantizer,
+    LinkStats,
+    NativeDriveLink,
+)
 from dob_hil.link.protocol import ID_FIRST, ID_LAST
 
 MAX_QUEUED_PER_AXIS: Final = 4096  # frames kept for an axis that does not read (oldest dropped)
@@ -448,6 +454,30 @@ class MultiAxisNativeLink:
         self.close()
 
 
+def axes_quantizer(
+    drive: DriveConfig,
+) -> Callable[[tuple[float, ...]], tuple[tuple[int, ...], tuple[float, ...], bool]]:
+    """The link's :meth:`~MultiAxisNativeLink.quantize` as a pure function of the drive config, for
+    any number of axes (each axis :class:`~dob_hil.link.native.DacQuantizer` on its own current;
+    one axis: exactly ``DacQuantizer.quantize``), for ``dob-hil replay``."""
+    one = DacQuantizer(drive).quantize
+
+    def quantize(current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
+        if len(current_A) == 1:
+            return one(current_A)
+        codes: list[int] = []
+        applied: list[float] = []
+        saturated = False
+        for u in current_A:
+            (code,), (a,), sat = one((u,))
+            codes.append(code)
+            applied.append(a)
+            saturated = saturated or sat
+        return tuple(codes), tuple(applied), saturated
+
+    return quantize
+
+
 def _combine(seq: int, per_axis: list[Feedback]) -> Feedback:
     return Feedback(
         max(f.rx_time_ns for f in per_axis),
@@ -461,4 +491,4 @@ def _combine(seq: int, per_axis: list[Feedback]) -> Feedback:
     )
 
 
-__all__ = ["AxesStats", "AxisBus", "BusRouter", "MultiAxisNativeLink"]
+__all__ = ["AxesStats", "AxisBus", "BusRouter", "MultiAxisNativeLink", "axes_quantizer"]

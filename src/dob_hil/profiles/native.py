@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from dob_hil.profiles.base import Clocking, DriveProfile, SimulatedCounterpart, TruthSink
+from dob_hil.profiles.base import Clocking, DriveProfile, QuantizeFn, SimulatedCounterpart, TruthSink
 
 if TYPE_CHECKING:
     import can
 
-    from dob_hil.config import Config
+    from dob_hil.config import Config, DriveConfig
     from dob_hil.link.base import DriveLink, EventHook, FrameHook
     from dob_hil.link.busload import BusLoad
 
@@ -38,6 +38,13 @@ def _make_sim(
                                 truth_sink=truth_sink)  # fmt: skip
 
 
+def _make_quantizer(drive: DriveConfig) -> QuantizeFn:
+    """Each axis's DAC on its own current (one axis: DacQuantizer), for `replay`."""
+    from dob_hil.link.native_axes import axes_quantizer
+
+    return axes_quantizer(drive)
+
+
 def _bus_load(config: Config) -> BusLoad:
     from dob_hil.link.busload import worst_case_bus_load
 
@@ -55,5 +62,6 @@ PROFILE = DriveProfile(
     make_link=_make_link,
     make_sim=_make_sim,
     bus_load=_bus_load,
+    make_quantizer=_make_quantizer,
     tested="byte-exact codec, cantools DBC, lockstep and udp_multicast real time, fault matrix",
 )
