@@ -151,3 +151,31 @@ def test_the_scenario_at_the_papers_period_overloads_the_bus_and_is_refused(tmp_
     with pytest.raises(ConfigError, match=r"drive\.bitrate_bps: worst-case bus load 13\d%"):
         run_session(config, RunOptions(log_path=tmp_path / "never.mcap"))
     assert not (tmp_path / "never.mcap").exists()
+
+
+def test_the_safety_envelope_watches_every_output_and_stops_both_nodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Motor 2 commanded beyond [safety] max_abs_position (motor 1 stays within): the run stops
+    naming output 1, both nodes left disabled at zero current."""
+    from dob_hil.loop.envelope import SafetyTrip
+
+    config = mimo_config(
+        {"position = 1.0\n": "position = 0.2\n", "position = 0.5\n": "position = 1.0\n"},
+        append="\n[safety]\nmax_abs_position = 0.8\n",
+    )
+    made: list[MultiAxisDrive] = []
+    factory = firmware_sim.axes.make_simulated_drive
+
+    def keep(*args: Any, **kw: Any) -> Any:
+        made.append(factory(*args, **kw))  # type: ignore[arg-type]
+        return made[-1]
+
+    monkeypatch.setattr(firmware_sim.axes, "make_simulated_drive", keep)
+    log = tmp_path / "trip.mcap"
+    with pytest.raises(SafetyTrip, match=r"position 0\.8\d* \(output 1\) outside \[-0\.8, 0\.8\]"):
+        run_session(config, RunOptions(log_path=log))
+    assert made[0].axis_states == (DriveState.DISABLED, DriveState.DISABLED)
+    assert made[0].applied_currents_A == (0.0, 0.0)
+    data = read_log(log)
+    assert np.all(np.abs(data.samples["position"][:, 0]) < 0.8)
