@@ -42,6 +42,7 @@ import can
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
+from firmware_sim.clocked import CoreReadout
 from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
@@ -85,6 +86,7 @@ class ThreadedDriveClock:
     :class:`firmware_sim.axes.realtime.MultiAxisRealtimeClock` is several nodes on one clock.
     """
 
+    core: CoreReadout
     _stats: DriveStats
     _rx_ids: frozenset[int]
     _feedback_ids: frozenset[int]
@@ -106,6 +108,13 @@ class ThreadedDriveClock:
         self._commanded = False  # a valid command since the last sample
         self._t0_ns = 0
         self._started = False
+
+    # --- read-out ------------------------------------------------------------------------------
+    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
+        """(state, period index, true plant state, time, a copy of the counters), consistent."""
+        with self._lock:
+            c = self.core
+            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
     # --- the firmware, per subclass ----------------------------------------------------------------
     def _tick(self, k: int) -> tuple[Outgoing, Outgoing, Any]:
@@ -277,7 +286,7 @@ class RealtimeClock(ThreadedDriveClock):
     ) -> None:
         super().__init__(bus, config, truth_sink, spin_ns=spin_ns)
         window = min(config.drive.watchdog_periods, 64)
-        self.core = DriveCore(
+        self.core: DriveCore = DriveCore(
             config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
         )
         self._node_id = self.core.node_id
@@ -285,12 +294,6 @@ class RealtimeClock(ThreadedDriveClock):
         self._rx_ids = frozenset((self.core.command_id, self.core.control_id))
         self._feedback_id = FrameKind.FEEDBACK + self._node_id
         self._feedback_ids = frozenset((self._feedback_id,))
-
-    # --- read-out ------------------------------------------------------------------------------
-    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
-        with self._lock:
-            c = self.core
-            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
     # --- the firmware --------------------------------------------------------------------------
     def _silent(self) -> bool:

@@ -16,12 +16,12 @@ from dob_hil.link.protocol import DriveState
 from firmware_sim.axes.lockstep import MultiAxisLockstepClock
 from firmware_sim.axes.realtime import MultiAxisRealtimeClock
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
-from firmware_sim.clocked import ClockedDrive, ClockKind
+from firmware_sim.clocked import ClockKind
 from firmware_sim.core import DriveStats
-from firmware_sim.drive import SimulatedDrive
+from firmware_sim.drive import SimulatedDrive, SnapshotDrive
 
 
-class MultiAxisDrive(ClockedDrive[MultiAxisLockstepClock, MultiAxisRealtimeClock]):
+class MultiAxisDrive(SnapshotDrive[MultiAxisLockstepClock, MultiAxisRealtimeClock]):
     def __init__(
         self,
         bus: can.BusABC,
@@ -62,46 +62,9 @@ class MultiAxisDrive(ClockedDrive[MultiAxisLockstepClock, MultiAxisRealtimeClock
         return self._lockstep.core.states
 
     @property
-    def state(self) -> DriveState:
-        """FAULT if any axis is in FAULT, ENABLED if every axis is, else DISABLED."""
-        if self._realtime is not None:
-            return self._realtime.snapshot()[0]
-        assert self._lockstep is not None
-        return self._lockstep.core.state
-
-    @property
     def enabled(self) -> bool:
         """Any axis's power stage is on (the session stops until none is)."""
         return DriveState.ENABLED in self.axis_states
-
-    @property
-    def period_index(self) -> int:
-        if self._realtime is not None:
-            return self._realtime.snapshot()[1]
-        assert self._lockstep is not None
-        return self._lockstep.core.period_index
-
-    @property
-    def true_state(self) -> tuple[float, ...]:
-        if self._realtime is not None:
-            return self._realtime.snapshot()[2]
-        assert self._lockstep is not None
-        return self._lockstep.core.plant.state
-
-    @property
-    def time_ns(self) -> int:
-        if self._realtime is not None:
-            return self._realtime.snapshot()[3]
-        assert self._lockstep is not None
-        return self._lockstep.core.time_ns
-
-    @property
-    def stats(self) -> DriveStats:
-        """The clock's counters (feedback sent or lost, overruns, ...)."""
-        if self._realtime is not None:
-            return self._realtime.snapshot()[4]
-        assert self._lockstep is not None
-        return DriveStats(**vars(self._lockstep.core.stats))
 
     @property
     def axis_stats(self) -> list[DriveStats]:

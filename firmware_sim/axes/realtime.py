@@ -34,18 +34,13 @@ class MultiAxisRealtimeClock(ThreadedDriveClock):
     ) -> None:
         super().__init__(bus, config, truth_sink, spin_ns=spin_ns)
         window = min(config.drive.watchdog_periods, 64)
-        self.core = MultiAxisCore(
+        self.core: MultiAxisCore = MultiAxisCore(
             config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
         )
         self.core.plant.precompute_splits()  # commands act at their arrival, inside a cell
         self._stats = self.core.stats
         self._rx_ids = self.core.rx_ids
         self._feedback_ids = frozenset(self.core.feedback_ids)
-
-    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
-        with self._lock:
-            c = self.core
-            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
 
     def axis_snapshot(self) -> tuple[tuple[DriveState, ...], list[DriveStats], tuple[float, ...]]:
         """Each axis's state, counters and current (once the changes commanded are due)."""
