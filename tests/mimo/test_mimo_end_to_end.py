@@ -19,6 +19,7 @@ from dob_hil.design import build_design
 from dob_hil.errors import ConfigError
 from dob_hil.link.protocol import DriveState, FrameKind
 from dob_hil.log import LogData, read_log
+from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING
 from dob_hil.loop.session import RunOptions, RunSummary, run_session
 from firmware_sim.axes import MultiAxisDrive
 
@@ -179,3 +180,27 @@ def test_the_safety_envelope_watches_every_output_and_stops_both_nodes(
     assert made[0].applied_currents_A == (0.0, 0.0)
     data = read_log(log)
     assert np.all(np.abs(data.samples["position"][:, 0]) < 0.8)
+
+
+def test_lost_feedback_of_one_node_makes_the_period_missing_never_mixed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """5 % of the FEEDBACK frames lost, each node's on its own: a period missing a node is a missing
+    sample (the loop's policy bridges it), never one axis's counts with another period's."""
+    config = mimo_config({"seed = 0\n": "seed = 0\nloss_probability = 0.05\n"})
+    log = tmp_path / "lossy.mcap"
+    summary, data, drive = _run(config, log, monkeypatch)
+    _check_run(config, summary, data, drive, log)
+    lost = drive.stats.feedback_lost
+    assert lost > 0 and summary.missing_samples > 0
+    # a period is missing when either node's frame of it was lost (both lost: one period)
+    assert lost // 2 <= summary.missing_samples <= lost
+    incomplete = [e for e in data.events if "incomplete" in e["message"]]
+    assert 0 < len(incomplete) <= summary.missing_samples  # (a period with both lost opens none)
+    s = data.samples
+    answered = (s["flags"] & FLAG_FEEDBACK_MISSING) == 0
+    # every answered sample's counts are both nodes' counts of that very period (ground truth)
+    truth_at = {int(t): i for i, t in enumerate(data.truth["time_ns"])}
+    idx = np.array([truth_at[int(t)] for t in s["time_ns"][answered]])
+    y_true = data.truth["state"][idx][:, [0, 2]]
+    np.testing.assert_allclose(s["position"][answered], y_true, atol=0.5 / 10000 + 1e-12)
