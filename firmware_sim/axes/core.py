@@ -60,20 +60,13 @@ class _AxisOutput:
 
 
 def axis_config(config: Config, axis: int, node_id: int) -> Config:
-    """The single-axis config of ``axis``: input/output ``axis`` of the plant, its own node, encoder
-    noise seed ``seed + axis``, and ``[sim.faults]`` on axis 0 only."""
-    p, sim = config.plant, config.sim
-    plant = replace(
-        p,
-        B=p.B[:, axis : axis + 1],
-        C=p.C[axis : axis + 1, :],
-        input_names=p.input_names[axis : axis + 1],
-        output_names=p.output_names[axis : axis + 1],
-    )
+    """The config of ``axis``'s firmware: its own node, encoder noise seed ``seed + axis``, and
+    ``[sim.faults]`` on axis 0 only (its plant and disturbance are the multi-axis core's)."""
+    sim = config.sim
     drive = replace(config.drive, node_id=node_id, node_ids=None)
     faults = sim.faults if axis == 0 else FaultsConfig()
     sim_axis = replace(sim, disturbances=(), faults=faults, seed=sim.seed + axis)
-    return replace(config, plant=plant, drive=drive, sim=sim_axis)
+    return replace(config, drive=drive, sim=sim_axis)
 
 
 class MultiAxisCore:
@@ -93,11 +86,6 @@ class MultiAxisCore:
         plant, sim = config.plant, config.sim
         self.period_ns = plant.period_ns
         self.want_truth = want_truth
-        self.axes = [
-            DriveCore(axis_config(config, i, node), accept_window=accept_window, want_truth=False,
-                      behaviour=behaviour)
-            for i, node in enumerate(self.node_ids)
-        ]  # fmt: skip
         cell_s = plant.period_s / sim.substeps
         self.disturbances = [
             Disturbance([d for d in sim.disturbances if d.input_index == i], cell_s) for i in range(n)
@@ -106,9 +94,12 @@ class MultiAxisCore:
             d.origin_s = None  # zero until the first enable
         self.plant = CoupledPlantModel(plant, sim.substeps, InputDisturbances(self.disturbances),
                                        sim.initial_state)  # fmt: skip
-        for i, core in enumerate(self.axes):
-            core.disturbance = self.disturbances[i]
-            core.plant = cast(PlantModel, _AxisOutput(self, i))
+        self.axes = [
+            DriveCore(axis_config(config, i, node), accept_window=accept_window, want_truth=False,
+                      behaviour=behaviour, plant_model=cast(PlantModel, _AxisOutput(self, i)),
+                      disturbance=self.disturbances[i])
+            for i, node in enumerate(self.node_ids)
+        ]  # fmt: skip
         self.paths = [core.path for core in self.axes]
         self._axis_of = {}
         for i, core in enumerate(self.axes):
