@@ -63,5 +63,6 @@ PROFILE = DriveProfile(
     make_sim=_make_sim,
     bus_load=_bus_load,
     make_quantizer=_make_quantizer,
-    tested="byte-exact codec, cantools DBC, lockstep and udp_multicast real time, fault matrix",
+    tested="byte-exact codec, cantools DBC, lockstep and udp_multicast real time, fault matrix, "
+    "several axes (2x2 on two nodes, lockstep and real time)",
 )
