@@ -331,3 +331,25 @@ def test_the_replay_quantizer_is_the_links_per_axis_and_dacquantizer_for_one_axi
         u = (rng.uniform(-1.0, 1.0), rng.choice([rng.uniform(-1.0, 1.0), 0.5 / 2048, -1.5 / 2048, 9.0]))
         assert quantize(u) == link.quantize(u)
         assert quantize(u[:1]) == one(u[:1])
+
+
+@pytest.mark.parametrize("clear_fault", [False, True])
+def test_a_node_left_in_fault_refuses_the_enable_of_all_unless_cleared(
+    mimo: Config, clear_fault: bool
+) -> None:
+    config = dataclasses.replace(mimo, drive=dataclasses.replace(mimo.drive, clear_fault=clear_fault))
+    host, drive_end = bus_pair("mimo-refuse")
+    drive = MultiAxisDrive(drive_end, config)
+    core = drive._lockstep.core  # type: ignore[union-attr]
+    core.axes[1].fault(FaultCode.OVERCURRENT, 0, 0)  # node 2 left in FAULT (a killed run, say)
+    link = MultiAxisNativeLink(host, config.drive, 2)
+    if clear_fault:
+        link.enable_lockstep(drive.service)
+        assert drive.axis_states == (DriveState.ENABLED, DriveState.ENABLED)
+    else:
+        with pytest.raises(DriveFault, match=r"node 2: the drive (refuses to enable|faulted).*--clear-fault"):
+            link.enable_lockstep(drive.service)
+        while drive.service():
+            pass
+        assert drive.axis_states == (DriveState.DISABLED, DriveState.FAULT)  # node 1 stopped again
+    link.close()

@@ -416,6 +416,9 @@ class MultiAxisNativeLink:
                 for axis in self.axes:
                     axis.request_clear_fault()
                 service()
+                for axis in self.axes:  # read what each node said (a FAULT sent before, its new state)
+                    while axis.receive_feedback(0) is not None:
+                        pass
             for axis in self.axes:
                 axis.request_enable()
             for _ in range(max_rounds):
