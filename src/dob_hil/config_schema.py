@@ -220,10 +220,14 @@ SCHEMA: tuple[SectionSpec, ...] = (
            unit="dB", default=6.0, low=0.0, high=200.0),
         _f("min_phase_margin_deg", "number", "Bound on the phase margin (loop at a time, plant "
            "input).", unit="deg", default=30.0, low=0.0, high=180.0),
-        _f("min_disk_gain_margin_dB", "number", "Bound on the balanced disk gain margin.",
-           unit="dB", low=0.0, low_open=True, high=200.0, default="none"),
-        _f("min_disk_phase_margin_deg", "number", "Bound on the balanced disk phase margin.",
-           unit="deg", low=0.0, low_open=True, high=90.0, default="none"),
+        _f("min_disk_gain_margin_dB", "number", "Bound on the balanced disk gain margin "
+           "(optimiser constraint and warning bound; for several inputs also on the multiloop margin "
+           "at the plant input).", unit="dB", low=0.0, low_open=True, high=200.0,
+           default="none (warning bound 6 dB for several inputs)"),
+        _f("min_disk_phase_margin_deg", "number", "Bound on the balanced disk phase "
+           "margin (optimiser constraint and warning bound; for several inputs also on the multiloop "
+           "margin at the plant input).", unit="deg", low=0.0, low_open=True, high=90.0,
+           default="none (warning bound 30 deg for several inputs)"),
         _f("min_delay_margin_samples", "number", "Bound on the delay margin.", unit="samples",
            default=1.0, low=0.0, high=1e6),
     )),

@@ -7,6 +7,7 @@ and multi-output, compared through the raw float64 bits (so -0.0 against 0.0 cou
 
 from __future__ import annotations
 
+import json
 import math
 import textwrap
 from pathlib import Path
@@ -17,6 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dob_hil import cli
 from dob_hil.config import Config, ReferenceConfig, parse_config_text
 from dob_hil.control.reference import Reference, make_reference
 from dob_hil.design import build_design
@@ -213,8 +215,9 @@ def test_one_table_per_output_equals_the_scalar_reference_bit_for_bit() -> None:
     a = make_reference(scalar, 2, PAPER_PERIOD_S, state_map=paper_map)
     b = make_reference(listed, 2, PAPER_PERIOD_S, state_map=paper_map)
     legacy = make_reference(scalar, 2, PAPER_PERIOD_S)
+    listed_legacy = make_reference(listed, 2, PAPER_PERIOD_S)  # no map: the legacy convention too
     for k in range(0, 5000, 37):
-        assert a.at(k) == b.at(k) == legacy.at(k)
+        assert a.at(k) == b.at(k) == legacy.at(k) == listed_legacy.at(k)
 
 
 def test_several_outputs_need_a_state_map() -> None:
@@ -348,7 +351,9 @@ def test_block_of_a_long_paper_sine_run_is_at() -> None:
 # ---------------------------------------------------------------------------------------------
 # Through a lockstep run and replay --verify
 # ---------------------------------------------------------------------------------------------
-def test_a_run_with_one_reference_table_logs_the_scalar_reference_and_verifies(tmp_path: Path) -> None:
+def test_a_run_with_one_reference_table_logs_the_scalar_reference_and_verifies(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The paper's sine commanded through [[reference.outputs]] runs exactly as through
     [reference]; replay --verify rebuilds its x_ref from the logged config."""
     from dob_hil.analysis.loaded import load_log
@@ -374,3 +379,6 @@ def test_a_run_with_one_reference_table_logs_the_scalar_reference_and_verifies(t
     result = verify(load_log(tmp_path / "run1.mcap"))
     assert result.identical, result.first_mismatches
     assert "x_ref" in result.fields
+    assert cli.main(["replay", "--verify", "--json", str(tmp_path / "run1.mcap")]) == 0  # the fast path
+    out = json.loads(capsys.readouterr().out)
+    assert out["identical"] and "x_ref" in out["fields"]

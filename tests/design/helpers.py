@@ -46,10 +46,17 @@ def _gain(D: np.ndarray, inputs: list[str], outputs: list[str], dt: float, name:
     )
 
 
-def runtime_interconnection(design: Design, dob_enabled: bool, *, open_at_plant_input: bool = False) -> Any:
+def runtime_interconnection(
+    design: Design,
+    dob_enabled: bool,
+    *,
+    open_at_plant_input: bool = False,
+    open_at_plant_output: bool = False,
+) -> Any:
     """Closed loop with inputs w (input disturbance), d (output disturbance) and outputs y (measured,
     = plant output + d), yp (plant output), u (controller command), ud (u_dist). With
-    ``open_at_plant_input`` the plant is driven by an external input ``uin`` instead of u."""
+    ``open_at_plant_input`` the plant is driven by an external input ``uin`` instead of u; with
+    ``open_at_plant_output`` the controller reads an external input ``yin`` instead of y."""
     dt = design.period_s
     d = design.input_delay_samples
     m, p, N = design.n_inputs, design.n_outputs, design.n_states
@@ -108,7 +115,7 @@ def runtime_interconnection(design: Design, dob_enabled: bool, *, open_at_plant_
         # x_hat = x_bar + Lc (y - C x_bar)
         _gain(
             np.hstack([np.eye(N) - Lc @ C, Lc]),
-            _labels("xb", N) + _labels("y", p),
+            _labels("xb", N) + _labels("yin" if open_at_plant_output else "y", p),
             _labels("xh", N),
             dt,
             "upd",
@@ -127,7 +134,7 @@ def runtime_interconnection(design: Design, dob_enabled: bool, *, open_at_plant_
             "pred",
         ),
     ]
-    inputs = ["w", "d"] + (["uin"] if open_at_plant_input else [])
+    inputs = ["w", "d"] + (["uin"] if open_at_plant_input else []) + (["yin"] if open_at_plant_output else [])
     return control.interconnect(blocks, inputs=inputs, outputs=["y", "yp", "u", "ud"], name="closed_loop")
 
 

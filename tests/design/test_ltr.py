@@ -6,6 +6,7 @@ import itertools
 import math
 
 import numpy as np
+import pytest
 
 from dob_hil.config import Config
 from dob_hil.design import build_design
@@ -86,3 +87,34 @@ def test_input_delay_is_stated_as_an_obstruction(delay_config: Config) -> None:
     assert rep.obstructions and "C Gam has rank 0 < 1" in rep.obstructions[0]
     assert [r.q for r in rep.rows[:-1]] == [1.0, 1e4]  # not extended: it cannot recover
     assert rep.recovered_at_q is None and any("no q recovers" in n for n in rep.notes)
+
+
+def test_mimo_recovery_error_sees_the_weak_direction(mimo_config: Config) -> None:
+    """For the 2x2 loop (cond(Gtl) ~ 130: one direction of the coupled plant has no stiffness) the
+    error is sigma_max((Lo - Gtl) Gtl^-1): at q = 1e12 some input direction of Gtl is still off by more
+    than 10 % in the band (at its lowest frequencies), although sigma_max(Lo - Gtl) / sigma_max(Gtl) is
+    below 2 % there; recovery is reached one decade later."""
+    from dob_hil.design.linalg import max_singular_value
+
+    d = build_design(mimo_config)
+    w = 2 * math.pi * frequency_grid_hz(d.period_ns, 800)
+    band_hz = (float(w[0]) / (2 * math.pi), 137.0)  # the report's default: up to twice the crossover
+    rep = ltr_report(d.Phi, d.Gam, d.C, d.Lc, Kc_design=d.Kc, R2=np.diag([1.0, 2.0]), q_values=(1e10, 1e12),
+                     period_s=d.period_s, omega_rad_s=w, band_hz=band_hz)  # fmt: skip
+    f = w / (2 * math.pi)
+    band = (f >= band_hz[0]) & (f <= band_hz[1])
+    row = rep.rows[1]
+    assert row.q == 1e12 and not row.recovered
+    E = row.Lo - rep.Gtl
+    naive = max_singular_value(E) / max_singular_value(rep.Gtl)
+    assert float(np.max(naive[band])) < 0.02
+    # a direction that shows it: v = Gtl^-1 u with u the worst direction of E Gtl^-1
+    mult = np.array([np.linalg.norm(E[i] @ np.linalg.inv(rep.Gtl[i]), 2) for i in range(f.size)])
+    k = int(np.argmax(np.where(band, mult, 0.0)))
+    X = E[k] @ np.linalg.inv(rep.Gtl[k])
+    u = np.linalg.svd(X)[2][0].conj()
+    v = np.linalg.solve(rep.Gtl[k], u)
+    ratio = np.linalg.norm(E[k] @ v) / np.linalg.norm(rep.Gtl[k] @ v)
+    assert ratio > 0.1
+    assert row.band_relative_error == pytest.approx(float(ratio), rel=1e-9)
+    assert rep.recovered_at_q == 1e13 and rep.rows[2].recovered

@@ -20,6 +20,13 @@ events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log)
 (|receive interval - period| between consecutive samples with feedback) and ``compute_us``
 (controller step): each ``{"p50", "p99", "max", "n"}``; ``bus_load`` (:mod:`bus_usage`);
 ``truth_samples`` (samples matched to ground truth); ``notes`` and ``warnings`` (lists of text).
+
+Per axis (lists, one entry per plant output or input, in order; the combined keys above stay):
+``tracking_error_rms_per_output`` / ``tracking_error_max_per_output`` (the same samples and source
+as the combined tracking error); ``disturbance_rms_per_input``,
+``disturbance_estimate_error_rms_per_input`` and ``disturbance_estimate_gain_per_input`` (None
+entries without truth); ``current_rms_A_per_input`` / ``current_max_A_per_input`` (|applied
+current|, every sample of the window).
 """
 
 from __future__ import annotations
@@ -125,7 +132,9 @@ def _rms_of(columns: list[FloatArray]) -> float | None:
     return math.sqrt(total / count) if count else None
 
 
-def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, int]:
+def _tracking_errors(sig: Signals, w: slice) -> tuple[list[FloatArray], str]:
+    """Reference minus output, one column per output: against the truth where there is any,
+    else against the measurement (samples with feedback)."""
     truth = sig.has_truth[w]
     p = sig.y_ref.shape[1]
     if truth.any():
@@ -133,7 +142,11 @@ def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, 
     else:
         mask, other, source = sig.has_feedback[w], sig.y_meas, "measured"
     refs, outs = _columns(sig.y_ref, w, mask, p), _columns(other, w, mask, p)
-    e = [r - y for r, y in zip(refs, outs, strict=True)]
+    return [r - y for r, y in zip(refs, outs, strict=True)], source
+
+
+def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, int]:
+    e, source = _tracking_errors(sig, w)
     used = len(e[0]) if e else 0
     if used == 0:
         return None, None, source, 0
@@ -163,6 +176,43 @@ def _disturbance(log: LoadedLog, sig: Signals, w: slice) -> dict[str, Any]:
         x_true = _columns(sig.x_true, w, truth, n_plant)
         x_hat = _columns(log.data.samples["x_hat"], w, truth, n_plant)
         out["estimation_error_rms"] = [_rms_of([t - h]) for t, h in zip(x_true, x_hat, strict=True)]
+    return out
+
+
+def _max_abs(column: FloatArray) -> float | None:
+    finite = column[np.isfinite(column)]
+    return float(np.abs(finite).max()) if len(finite) else None
+
+
+def _per_axis(log: LoadedLog, sig: Signals, w: slice) -> dict[str, Any]:
+    """The per-output and per-input metrics of the module docstring."""
+    e, _ = _tracking_errors(sig, w)
+    m = log.data.layout.n_inputs
+    out: dict[str, Any] = {
+        "tracking_error_rms_per_output": [_rms_of([c]) for c in e],
+        "tracking_error_max_per_output": [_max_abs(c) for c in e],
+        "disturbance_rms_per_input": [None] * m,
+        "disturbance_estimate_error_rms_per_input": [None] * m,
+        "disturbance_estimate_gain_per_input": [None] * m,
+    }
+    truth = sig.has_truth[w]
+    if truth.any():
+        dist = _columns(sig.w_A, w, truth, m)
+        u_dist = _columns(log.data.samples["u_dist"], w, truth, m)
+        out["disturbance_rms_per_input"] = [_rms_of([d]) for d in dist]
+        out["disturbance_estimate_error_rms_per_input"] = [
+            _rms_of([d + u]) for d, u in zip(dist, u_dist, strict=True)
+        ]
+        gains: list[float | None] = []
+        for d, u in zip(dist, u_dist, strict=True):
+            ok = np.isfinite(d) & np.isfinite(u)
+            ww = float(np.dot(d[ok], d[ok]))
+            gains.append(0.0 - float(np.dot(d[ok], u[ok])) / ww if ww > 0 else None)  # 0 - : no -0.0
+        out["disturbance_estimate_gain_per_input"] = gains
+    every = np.ones(len(sig.t_s[w]), dtype=np.bool_)
+    currents = _columns(log.data.samples["u_applied_a"], w, every, m)
+    out["current_rms_A_per_input"] = [_rms_of([c]) for c in currents]
+    out["current_max_A_per_input"] = [_max_abs(c) for c in currents]
     return out
 
 
@@ -236,6 +286,7 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         "bus_load": bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
         "truth_samples": int(np.count_nonzero(sig.has_truth[w])),
         "tracking_error_samples": used,
+        **_per_axis(log, sig, w),
         "notes": notes,
         "warnings": warnings,
     }

@@ -85,6 +85,20 @@ def _label(log: LoadedLog) -> str:
     return literal(log.label)
 
 
+def axis_name(log: LoadedLog, kind: str, j: int) -> str:
+    """``output 2 (p2)`` / ``input 1 (i1)``: 1-based, with the plant's name for it when the log
+    has a design (shown literally)."""
+    names: tuple[str, ...] = ()
+    if log.design is not None:
+        names = log.design.output_names if kind == "output" else log.design.input_names
+    return f"{kind} {j + 1}" + (f" ({literal(names[j])})" if j < len(names) else "")
+
+
+def _legend_right(ax: Any) -> Any:
+    """The axes' legend to the right of the axes (outside the data area)."""
+    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=LEGEND_FONTSIZE, frameon=False)
+
+
 def _title(inputs: list[PlotInput], what: str) -> str:
     names: list[str] = []
     for item in inputs:
@@ -176,43 +190,73 @@ def step_window(t_s: FloatArray, y_ref: FloatArray, y: FloatArray) -> tuple[floa
 
 
 def _plot_output(plt: Any, inputs: list[PlotInput], models: list[FloatArray | None], out: Path) -> Path:
+    """One block of panels per output (plant output vs model with the step zoom, and plant minus
+    model); a single-output plant gets one block, titled as before."""
     first = inputs[0].signals
     truth0 = first.has_truth.any()
-    window = step_window(first.t_s, first.y_ref[:, 0], (first.y_true if truth0 else first.y_meas)[:, 0])
-    fig = plt.figure(figsize=(11.0, 7.5))
-    grid = fig.add_gridspec(2, 3 if window else 1, height_ratios=(2, 1), hspace=0.4, wspace=0.3)
-    ax = fig.add_subplot(grid[0, :2] if window else grid[0, 0])
-    zoom = fig.add_subplot(grid[0, 2]) if window else None
-    ax2 = fig.add_subplot(grid[1, :2] if window else grid[1, 0], sharex=ax)
+    p = first.y_ref.shape[1]
+    windows = [
+        step_window(first.t_s, first.y_ref[:, j], (first.y_true if truth0 else first.y_meas)[:, j])
+        for j in range(p)
+    ]
+    zoomed = any(w is not None for w in windows)
+    fig = plt.figure(figsize=(11.0, 7.5 * p))
+    grid = fig.add_gridspec(
+        2 * p, 3 if zoomed else 1, height_ratios=(2, 1) * p, hspace=0.4 if p == 1 else 0.55, wspace=0.3
+    )
+    for j in range(p):
+        ax = fig.add_subplot(grid[2 * j, :2] if zoomed else grid[2 * j, 0])
+        zoom = fig.add_subplot(grid[2 * j, 2]) if windows[j] is not None else None
+        ax2 = fig.add_subplot(grid[2 * j + 1, :2] if zoomed else grid[2 * j + 1, 0], sharex=ax)
+        _draw_output(plt, inputs, models, j, (ax, zoom, ax2), windows[j])
+    return _save(plt, fig, out)
+
+
+def _draw_output(
+    plt: Any,
+    inputs: list[PlotInput],
+    models: list[FloatArray | None],
+    j: int,
+    axes: tuple[Any, Any, Any],
+    window: tuple[float, float] | None,
+) -> None:
+    """Output ``j``'s panels: ``ax`` (reference, plant, model), ``zoom`` (the step, or None) and
+    ``ax2`` (plant minus model)."""
+    ax, zoom, ax2 = axes
+    several = inputs[0].signals.y_ref.shape[1] > 1
+    which = f"{axis_name(inputs[0].log, 'output', j)}: " if several else ""
     y_unit = _unit(inputs[0].log)[0]
     refs: list[FloatArray] = []
     for i, (item, model) in enumerate(zip(inputs, models, strict=True)):
         sig, color = item.signals, f"C{i}"
+        if j >= sig.y_ref.shape[1]:
+            continue
         targets = [a for a in (ax, zoom) if a is not None]
-        if not any(len(r) == len(sig.y_ref) and np.array_equal(r, sig.y_ref[:, 0]) for r in refs):
-            refs.append(sig.y_ref[:, 0])
+        if not any(len(r) == len(sig.y_ref) and np.array_equal(r, sig.y_ref[:, j]) for r in refs):
+            refs.append(sig.y_ref[:, j])
             ref_label = "reference" if i == 0 else f"reference: {_label(item.log)}"
             for a in targets:
-                _line(a, sig.t_s, sig.y_ref[:, 0], color="k", lw=1.0, ls=":", label=ref_label)
+                _line(a, sig.t_s, sig.y_ref[:, j], color="k", lw=1.0, ls=":", label=ref_label)
         truth = sig.has_truth.any()
         y = sig.y_true if truth else sig.y_meas
         for a in targets:
-            _line(a, sig.t_s, y[:, 0], color=color, lw=1.3,
+            _line(a, sig.t_s, y[:, j], color=color, lw=1.3,
                   label=f"plant output{'' if truth else ' (measured)'}: {_label(item.log)}")  # fmt: skip
         if model is None:
             continue
-        shared = [j for j, m in enumerate(models) if m is model]
+        shared = [k for k, m in enumerate(models) if m is model]
         if shared[0] == i:  # draw each distinct model once, saying which runs it belongs to
             runs = (
                 ("both runs" if len(inputs) == 2 else "all runs")
                 if len(shared) == len(inputs) > 1
-                else ", ".join(_label(inputs[j].log) for j in shared)
+                else ", ".join(_label(inputs[k].log) for k in shared)
             )
             for a in targets:
-                _line(a, sig.t_s, model[:, 0], color="0.35", lw=1.0, ls=(0, (5, 2 + 2 * i)),
+                _line(a, sig.t_s, model[:, j], color="0.35", lw=1.0, ls=(0, (5, 2 + 2 * i)),
                       label=f"model output (nominal loop, no disturbance): {runs}")  # fmt: skip
-        _line(ax2, sig.t_s, y[:, 0] - model[:, 0], color=color, lw=1.0, label=_label(item.log))
-    ax.set(ylabel=f"output [{y_unit}]", title=_title(inputs, "plant output vs model output"))
+        _line(ax2, sig.t_s, y[:, j] - model[:, j], color=color, lw=1.0, label=_label(item.log))
+    name = axis_name(inputs[0].log, "output", j) if several else "output"
+    ax.set(ylabel=f"{name} [{y_unit}]", title=_title(inputs, f"{which}plant output vs model output"))
     ax.grid(True, alpha=0.3)
     ax.tick_params(labelbottom=True)
     ax.set_xlabel("time [s]")
@@ -220,18 +264,19 @@ def _plot_output(plt: Any, inputs: list[PlotInput], models: list[FloatArray | No
         zoom.set_xlim(*window)
         lo, hi = _visible_range(zoom, *window)
         zoom.set_ylim(lo, hi)
-        zoom.set(xlabel="time [s]", ylabel=f"output [{y_unit}]",
-                 title=f"step transient ({1000 * (window[1] - window[0]):.0f} ms)")  # fmt: skip
+        zoom.set(xlabel="time [s]", ylabel=f"{name} [{y_unit}]",
+                 title=f"{which}step transient ({1000 * (window[1] - window[0]):.0f} ms)")  # fmt: skip
         zoom.grid(True, alpha=0.3)
         zoom.xaxis.set_major_locator(plt.MaxNLocator(4))
         ax.axvspan(*window, color="0.85", alpha=0.5, lw=0, label="zoomed")
-    ax2.set(xlabel="time [s]", ylabel=f"plant - model [{y_unit}]", title="plant output minus model output")
+    ax2.set(
+        xlabel="time [s]", ylabel=f"plant - model [{y_unit}]", title=f"{which}plant output minus model output"
+    )
     ax2.grid(True, alpha=0.3)
     handles, labels = ax.get_legend_handles_labels()
-    # one legend for all panels, under the figure: the lower panel's colours are the runs above
+    # one legend for the block, beside the lower panel: the lower panel's colours are the runs above
     ax2.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.03, 1.0), fontsize=LEGEND_FONTSIZE,
                frameon=False)  # fmt: skip
-    return _save(plt, fig, out)
 
 
 def _visible_range(ax: Any, t0: float, t1: float) -> tuple[float, float]:
@@ -258,13 +303,35 @@ def estimate_gain(w: FloatArray, estimate: FloatArray) -> float | None:
 
 
 def _plot_disturbance(plt: Any, inputs: list[PlotInput], from_s: float, out: Path) -> Path:
-    fig, ax = plt.subplots(figsize=FIGSIZE)
+    """One panel per plant input (legend below a single panel, beside each of several)."""
+    m = inputs[0].signals.w_A.shape[1]
+    fig, axes = plt.subplots(m, 1, figsize=FIGSIZE if m == 1 else (9.0, 3.6 * m), sharex=True, squeeze=False)
     u_unit = _unit(inputs[0].log)[1]
+    for j, ax in enumerate(axes[:, 0]):
+        _draw_disturbance(ax, inputs, from_s, j, several=m > 1)
+        ax.set(ylabel=f"{axis_name(inputs[0].log, 'input', j) if m > 1 else 'current'} [{u_unit}]")
+        ax.grid(True, alpha=0.3)
+        if m == 1:
+            _legend_below(fig, ax, ncol=2)
+        else:
+            _legend_right(ax)
+    for ax in axes[:, 0]:
+        ax.set_xlabel("time [s]")
+        ax.tick_params(labelbottom=True)
+    if m > 1:
+        fig.subplots_adjust(hspace=0.45)
+    return _save(plt, fig, out)
+
+
+def _draw_disturbance(ax: Any, inputs: list[PlotInput], from_s: float, j: int, *, several: bool) -> None:
+    """Input ``j``'s injected disturbance and each run's estimate -u_dist (with its gain)."""
     shown_w: list[FloatArray] = []
     notes: list[str] = []
     for i, item in enumerate(inputs):
         sig, color = item.signals, f"C{i}"
-        w = sig.w_A[:, 0]
+        if j >= sig.w_A.shape[1]:
+            continue
+        w = sig.w_A[:, j]
         if sig.has_truth.any() and not any(len(s) == len(w) and np.array_equal(s, w, equal_nan=True)
                                            for s in shown_w):  # fmt: skip
             label = "disturbance w (injected)" if not shown_w else f"disturbance w: {_label(item.log)}"
@@ -273,7 +340,7 @@ def _plot_disturbance(plt: Any, inputs: list[PlotInput], from_s: float, out: Pat
         if not item.log.dob_enabled:
             notes.append(f"{_label(item.log)}: DOB off, no estimate")
             continue
-        estimate = -np.asarray(item.log.data.samples["u_dist"][:, 0], dtype=np.float64)
+        estimate = -np.asarray(item.log.data.samples["u_dist"][:, j], dtype=np.float64)
         window = sig.t_s >= from_s
         gain = estimate_gain(w[window], estimate[window]) if sig.has_truth.any() else None
         gain_text = f", gain {gain:.2f} x w" if gain is not None else ""
@@ -281,12 +348,8 @@ def _plot_disturbance(plt: Any, inputs: list[PlotInput], from_s: float, out: Pat
               label=f"estimate -u_dist: {_label(item.log)}{gain_text}")  # fmt: skip
     for note in notes:
         ax.plot([], [], ls="none", label=note)
-    ax.set(
-        xlabel="time [s]", ylabel=f"current [{u_unit}]", title=_title(inputs, "disturbance and its estimate")
-    )
-    ax.grid(True, alpha=0.3)
-    _legend_below(fig, ax, ncol=2)
-    return _save(plt, fig, out)
+    which = f"{axis_name(inputs[0].log, 'input', j)}: " if several else ""
+    ax.set_title(_title(inputs, f"{which}disturbance and its estimate"))
 
 
 def _sine_frequencies(inputs: list[PlotInput]) -> list[float]:
@@ -338,37 +401,59 @@ def _plot_sensitivity(plt: Any, inputs: list[PlotInput], out: Path) -> Path | No
 
 
 def _plot_tracking(plt: Any, inputs: list[PlotInput], from_s: float, out: Path) -> Path:
-    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9.0, 7.0), height_ratios=(1, 1))
+    """Whole run and metrics window: stacked for one output, side by side per output for several."""
+    p = inputs[0].signals.y_ref.shape[1]
+    if p == 1:
+        fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9.0, 7.0), height_ratios=(1, 1))
+        rows = [(ax, ax2)]
+    else:
+        fig, grid = plt.subplots(p, 2, figsize=(14.0, 3.6 * p), squeeze=False)
+        rows = [(grid[j, 0], grid[j, 1]) for j in range(p)]
     y_unit = _unit(inputs[0].log)[0]
-    for i, item in enumerate(inputs):
-        sig = item.signals
-        truth = sig.has_truth.any()
-        e = sig.y_ref[:, 0] - (sig.y_true if truth else sig.y_meas)[:, 0]
-        label = f"{_label(item.log)}{'' if truth else ' (vs measured)'}"
-        _line(ax, sig.t_s, e, color=f"C{i}", lw=1.0, label=label)
-        window = sig.t_s >= from_s
-        if window.any():
-            _line(ax2, sig.t_s[window], e[window], color=f"C{i}", lw=1.0, label=label)
-    ax.axvline(from_s, color="0.5", ls=":", lw=1.0, label=f"metrics window from {from_s:g} s")
-    ax.set(xlabel="time [s]", ylabel=f"reference - output [{y_unit}]",
-           title=_title(inputs, "tracking error, whole run"))  # fmt: skip
-    ax2.set(xlabel="time [s]", ylabel=f"reference - output [{y_unit}]",
-            title=f"tracking error from {from_s:g} s (the metrics window)")  # fmt: skip
-    for a in (ax, ax2):
-        a.grid(True, alpha=0.3)
-    fig.subplots_adjust(hspace=0.45)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=LEGEND_FONTSIZE, frameon=False)
+    for j, (ax, ax2) in enumerate(rows):
+        which = f"{axis_name(inputs[0].log, 'output', j)}: " if p > 1 else ""
+        for i, item in enumerate(inputs):
+            sig = item.signals
+            if j >= sig.y_ref.shape[1]:
+                continue
+            truth = sig.has_truth.any()
+            e = sig.y_ref[:, j] - (sig.y_true if truth else sig.y_meas)[:, j]
+            label = f"{_label(item.log)}{'' if truth else ' (vs measured)'}"
+            _line(ax, sig.t_s, e, color=f"C{i}", lw=1.0, label=label)
+            window = sig.t_s >= from_s
+            if window.any():
+                _line(ax2, sig.t_s[window], e[window], color=f"C{i}", lw=1.0, label=label)
+        ax.axvline(from_s, color="0.5", ls=":", lw=1.0, label=f"metrics window from {from_s:g} s")
+        ylabel = (
+            f"{which}reference - output [{y_unit}]" if p == 1 else f"{which.rstrip(': ')} error [{y_unit}]"
+        )
+        ax.set(xlabel="time [s]", ylabel=ylabel,
+               title=_title(inputs, f"{which}tracking error, whole run"))  # fmt: skip
+        ax2.set(xlabel="time [s]", ylabel=ylabel,
+                title=f"{which}tracking error from {from_s:g} s (the metrics window)")  # fmt: skip
+        for a in (ax, ax2):
+            a.grid(True, alpha=0.3)
+        (ax if p == 1 else ax2).legend(
+            *ax.get_legend_handles_labels(), loc="upper left", bbox_to_anchor=(1.01, 1.0),
+            fontsize=LEGEND_FONTSIZE, frameon=False,
+        )  # fmt: skip
+    fig.subplots_adjust(hspace=0.45 if p == 1 else 0.6, wspace=0.25)
     return _save(plt, fig, out)
 
 
 def _plot_command(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
-    n = len(inputs)
+    """One panel per run and plant input: neither hides the other."""
+    m = max(int(item.log.data.samples["u_cmd_a"].shape[1]) for item in inputs)
+    panels = [(item, i, j) for i, item in enumerate(inputs) for j in range(m)]
+    n = len(panels)
     fig, axes = plt.subplots(n, 1, figsize=(9.0, 2.0 + 2.6 * n), sharex=True, squeeze=False)
     u_unit = _unit(inputs[0].log)[1]
-    for i, (item, ax) in enumerate(zip(inputs, axes[:, 0], strict=True)):
+    for (item, i, j), ax in zip(panels, axes[:, 0], strict=True):
         s, t = item.log.data.samples, item.signals.t_s
-        cmd = np.asarray(s["u_cmd_a"][:, 0], dtype=np.float64)
-        applied = np.asarray(s["u_applied_a"][:, 0], dtype=np.float64)
+        if j >= s["u_cmd_a"].shape[1]:
+            continue
+        cmd = np.asarray(s["u_cmd_a"][:, j], dtype=np.float64)
+        applied = np.asarray(s["u_applied_a"][:, j], dtype=np.float64)
         _line(ax, t, cmd, color="0.3", lw=0.8, ls="--", label="commanded (before the limit)")
         _line(ax, t, applied, color=f"C{i}", lw=1.3, label="applied (limited, quantised)")
         limit = item.log.current_limit_A
@@ -382,7 +467,8 @@ def _plot_command(plt: Any, inputs: list[PlotInput], out: Path) -> Path:
             ax.set_yticks(_symlog_ticks(limit, top))
             ax.yaxis.set_major_formatter(plt.FuncFormatter(lambda v, _pos: f"{v:g}"))
             ax.yaxis.set_minor_locator(plt.NullLocator())
-        ax.set(ylabel=f"current [{u_unit}]", title=_label(item.log))
+        title = _label(item.log) if m == 1 else f"{_label(item.log)}: {axis_name(item.log, 'input', j)}"
+        ax.set(ylabel=f"current [{u_unit}]", title=title)
         ax.grid(True, alpha=0.3)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=LEGEND_FONTSIZE, frameon=False)
     axes[-1, 0].set_xlabel("time [s]")

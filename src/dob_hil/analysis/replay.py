@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dob_hil.analysis.loaded import LoadedLog
-from dob_hil.analysis.rerun import MissingPolicy, Rerun, rerun
+from dob_hil.analysis.rerun import MissingPolicy, Quantize, Rerun, rerun
 from dob_hil.config import Config, DriveConfig
 from dob_hil.control.step import compile_step
 from dob_hil.design import Design
@@ -90,10 +90,29 @@ def logged_missing_policy(log: LoadedLog, notes: list[str]) -> MissingPolicy:
     return MissingPolicy(policy, 3)
 
 
+def per_axis(quantize: Quantize, n_inputs: int) -> Quantize:
+    """The drive's quantizer applied to each axis's current on its own (every axis of a
+    multi-axis run is one drive with the same limit and DAC step): ``quantize`` itself for one
+    input; saturated when any axis saturated."""
+    if n_inputs == 1:
+        return quantize
+
+    def each(current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
+        axes = [quantize((u,)) for u in current_A]
+        return (
+            tuple(codes[0] for codes, _, _ in axes),
+            tuple(applied[0] for _, applied, _ in axes),
+            any(saturated for _, _, saturated in axes),
+        )
+
+    return each
+
+
 def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
     step = compile_step(controller_gains(design), log.dob_enabled)  # with the reference feedforward
     make_quantizer = get_profile(drive.profile).make_quantizer
     quantize = DacQuantizer(drive).quantize if make_quantizer is None else make_quantizer(drive)
+    quantize = per_axis(quantize, step.n_inputs)
     return rerun(step, quantize, log.data.samples, design.C, missing, log.data.events)
 
 
@@ -193,6 +212,11 @@ class RedesignResult:
     other_rms_A: float
     other_saturated_fraction: float
     notes: list[str] = field(default_factory=list)
+    # per plant input (one entry for a single-input plant): the same figures axis by axis
+    u_applied_diff_rms_A_per_input: list[float] = field(default_factory=list)
+    u_applied_diff_max_A_per_input: list[float] = field(default_factory=list)
+    sent_rms_A_per_input: list[float] = field(default_factory=list)
+    other_rms_A_per_input: list[float] = field(default_factory=list)
     rerun: Rerun | None = None  # the other design's commands (not in to_dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -236,6 +260,9 @@ def redesign(log: LoadedLog, other: Design) -> RedesignResult:
         return float(np.abs(x).max()) if x.size else 0.0
 
     notes.append("open loop: the plant's response to the other commands is not modelled")
+    diff = r.u_applied - sent
+    m = sent.shape[1] if sent.ndim == 2 else 1
+    columns = range(m)
     return RedesignResult(
         design_name=other.name,
         samples=n,
@@ -248,5 +275,9 @@ def redesign(log: LoadedLog, other: Design) -> RedesignResult:
         other_rms_A=rms(r.u_applied),
         other_saturated_fraction=float(np.mean(r.saturated)) if n else 0.0,
         notes=notes,
+        u_applied_diff_rms_A_per_input=[rms(diff[:, j]) for j in columns],
+        u_applied_diff_max_A_per_input=[amax(diff[:, j]) for j in columns],
+        sent_rms_A_per_input=[rms(sent[:, j]) for j in columns],
+        other_rms_A_per_input=[rms(r.u_applied[:, j]) for j in columns],
         rerun=r,
     )

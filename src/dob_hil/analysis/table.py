@@ -43,6 +43,22 @@ def _state_error(i: int) -> Callable[[dict[str, Any]], str]:
     return get
 
 
+def _axis(key: str, j: int, fmt: str = ".4g") -> Callable[[dict[str, Any]], str]:
+    """Entry ``j`` of a per-output/per-input list (``-`` where a log has none)."""
+
+    def get(m: dict[str, Any]) -> str:
+        values = m.get(key)
+        return _num(values[j], fmt) if values and j < len(values) else NONE
+
+    return get
+
+
+def _axes(metrics: list[dict[str, Any]], key: str) -> int:
+    """The largest number of axes of ``key`` among the logs: rows per axis only beyond one."""
+    n = max((len(m.get(key) or []) for m in metrics), default=0)
+    return n if n > 1 else 0
+
+
 def _percent(key: str) -> Callable[[dict[str, Any]], str]:
     return lambda m: NONE if m[key] is None else f"{100.0 * m[key]:.2f} %"
 
@@ -57,10 +73,23 @@ def _rows(metrics: list[dict[str, Any]]) -> list[Row]:
         ("tracking error rms", lambda m: _num(m["tracking_error_rms"])),
         ("tracking error max", lambda m: _num(m["tracking_error_max"])),
         ("  against", lambda m: str(m["tracking_error_source"])),
+    ]
+    for j in range(_axes(metrics, "tracking_error_rms_per_output")):  # several outputs: each one
+        rows.append((f"tracking error rms output {j + 1}", _axis("tracking_error_rms_per_output", j)))
+        rows.append((f"tracking error max output {j + 1}", _axis("tracking_error_max_per_output", j)))
+    rows += [
         ("disturbance w rms [A]", lambda m: _num(m["disturbance_rms"])),
         ("w + u_dist rms [A]", lambda m: _num(m["disturbance_estimate_error_rms"])),
         ("estimate gain -u_dist/w", lambda m: _num(m["disturbance_estimate_gain"], ".3f")),
     ]
+    for j in range(_axes(metrics, "disturbance_rms_per_input")):  # several inputs: each one
+        rows += [
+            (f"disturbance w rms input {j + 1} [A]", _axis("disturbance_rms_per_input", j)),
+            (f"w + u_dist rms input {j + 1} [A]", _axis("disturbance_estimate_error_rms_per_input", j)),
+            (f"estimate gain input {j + 1}", _axis("disturbance_estimate_gain_per_input", j, ".3f")),
+            (f"current rms input {j + 1} [A]", _axis("current_rms_A_per_input", j)),
+            (f"current max input {j + 1} [A]", _axis("current_max_A_per_input", j)),
+        ]
     n_states = max((len(m["estimation_error_rms"] or []) for m in metrics), default=0)
     for i in range(n_states):
         rows.append((f"state {i} error rms", _state_error(i)))

@@ -91,6 +91,20 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
             f"max {result.u_applied_diff_max_A:.5g} A; commanded rms {result.u_cmd_diff_rms_A:.5g} A, "
             f"max {result.u_cmd_diff_max_A:.5g} A"
         )
+        if len(result.sent_rms_A_per_input) > 1:  # several inputs: each axis
+            for j, (sent, other_rms, diff_rms, diff_max) in enumerate(
+                zip(
+                    result.sent_rms_A_per_input,
+                    result.other_rms_A_per_input,
+                    result.u_applied_diff_rms_A_per_input,
+                    result.u_applied_diff_max_A_per_input,
+                    strict=True,
+                )
+            ):
+                print(
+                    f"  input {j + 1}: sent rms {sent:.5g} A, {design.name} rms {other_rms:.5g} A, "
+                    f"difference rms {diff_rms:.5g} A, max {diff_max:.5g} A"
+                )
         print(f"  {design.name} saturated {100.0 * result.other_saturated_fraction:.2f} % of samples")
         for note in result.notes:
             print(f"  note: {note}")

@@ -353,7 +353,10 @@ def make_reference(
     config: ReferenceConfig, n_states: int, period_s: float, *, state_map: StateMap | None = None
 ) -> Reference:
     """The configured reference; ``state_map = (Nx, Nv)`` (module docstring), None: the legacy map
-    (``[reference]`` only: several outputs need the plant's map)."""
+    (one commanded output only: several need the plant's map). One ``[[reference.outputs]]``
+    table is the same reference as ``[reference]`` with its keys, bit for bit."""
+    if len(config.outputs) == 1:
+        config = config.outputs[0]
     if config.outputs:
         if state_map is None:
             raise ConfigError("reference.outputs", "several commanded outputs need the plant's state map")

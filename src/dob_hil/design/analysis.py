@@ -7,6 +7,13 @@ the plant *output* (Lo = P K), the scalar loop of that channel with every other 
 (for a SISO plant both are the same scalar loop K(z) P(z), negative feedback). Disk margins are the
 balanced (skew 0) ones of MATLAB's ``diskmargin``, loop at a time; the delay margin, noise to current,
 the disturbance-to-estimate filter Q(z) and the pole flags are defined in ``robustness`` and ``dob``.
+
+Multiloop disk margins (``multiloop``): every channel of the breaking point perturbed at once by its
+own balanced disk factor, alpha = 1 / max_w mu(F - I/2) with F = Si (plant input) or S (plant
+output) and a diagonal complex uncertainty, as MATLAB's ``diskmargin(L)`` for a MIMO L. For a
+single-input, single-output loop it equals the loop-at-a-time disk margin. Per input: the delay
+margin (a transport delay in that input alone) and the peak noise to current of that input (row i of
+K S, 2-norm: the worst direction of one count of encoder noise).
 """
 
 from __future__ import annotations
@@ -23,8 +30,9 @@ from dob_hil.design.build import DesignResult
 from dob_hil.design.dob import METHOD_AIMS, disturbance_estimate_response, locus_magnitudes
 from dob_hil.design.linalg import CMatrix, Matrix, frequency_grid_hz, max_singular_value, unit_circle_points
 from dob_hil.design.loops import LoopResponse, design_loop_response, loop_at_a_time
-from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, ltr_report
+from dob_hil.design.ltr import DEFAULT_LTR_Q_VALUES, LtrReport, error_definition, ltr_report
 from dob_hil.design.margins import Margins, loop_margins
+from dob_hil.design.multiloop import MultiloopDiskMargin, multiloop_disk_margin
 from dob_hil.design.robustness import (
     DiskMargin,
     PoleFlag,
@@ -63,13 +71,19 @@ class LoopSummary:
     peak_Si: Peak
     peak_disturbance: Peak
     low_frequency_disturbance_gain: float
-    disturbance_at: tuple[tuple[float, float], ...]  # (frequency Hz, |y/w| for the configured input)
+    disturbance_at: tuple[tuple[float, float], ...]  # (frequency Hz, ||y/w|| for the configured input)
+    disturbance_at_per_output: tuple[tuple[int, tuple[float, ...]], ...]  # (input index, |y_j / w|)
     noise_rms_A: tuple[float, ...]  # per input, one count RMS of white encoder noise
     noise_peak_A: Peak  # max over frequency of sigma_max(K S) * one count
     noise_to_current: FloatArray  # sigma_max(K S) * one count on the grid [A per count]
     disk_input: tuple[DiskMargin, ...]
     disk_output: tuple[DiskMargin, ...]
     delay_margin_s: float
+    multiloop_input: MultiloopDiskMargin
+    multiloop_output: MultiloopDiskMargin
+    delay_margins_s: tuple[float, ...]  # per input (loop at a time)
+    noise_peak_per_input_A: tuple[Peak, ...]  # max over frequency of ||row i of K S||_2 * one count
+    noise_to_current_per_input: FloatArray  # ||row i of K S||_2 * one count, shape (grid, inputs) [A]
 
 
 @dataclass(frozen=True)
@@ -128,16 +142,24 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
         return lambda x: max_singular_value(getattr(resp(x), attr))
 
     count = 1.0 / config.drive.encoder_counts_per_unit
-    ks = max_singular_value(r.K @ r.S) * count
+    KS = r.K @ r.S
+    ks = max_singular_value(KS) * count
+    rows = np.sqrt(np.sum(np.abs(KS) ** 2, axis=2)) * count  # (frequency, input)
+    noise_rows = tuple(
+        Peak(float(np.max(rows[:, i])), float(w[int(np.argmax(rows[:, i]))]) / (2.0 * math.pi))
+        for i in range(design.n_inputs)
+    )
     m_, p_ = design.n_inputs, design.n_outputs
     dms = [classical_margins(1.0 / r.Si[:, i, i] - 1.0, w)[2] for i in range(m_)]
     Kd = design.Kdist if dob_enabled else np.zeros_like(design.Kdist)
     dist_at: list[tuple[float, float]] = []
+    dist_rows: list[tuple[int, tuple[float, ...]]] = []
     for dcfg in config.sim.disturbances:
         if dcfg.kind == "sine" and dcfg.frequency_hz > 0.0:
             x = np.array([2.0 * math.pi * dcfg.frequency_hz])
             col = resp(x).disturbance[0, :, dcfg.input_index]
             dist_at.append((dcfg.frequency_hz, float(np.linalg.norm(col))))
+            dist_rows.append((dcfg.input_index, tuple(float(v) for v in np.abs(col))))
     return LoopSummary(
         response=r,
         margins_input=m_in,
@@ -148,6 +170,7 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
         peak_disturbance=_peak(max_singular_value(r.disturbance), w, sig("disturbance")),
         low_frequency_disturbance_gain=float(max_singular_value(r.disturbance)[0]),
         disturbance_at=tuple(dist_at),
+        disturbance_at_per_output=tuple(dist_rows),
         noise_rms_A=tuple(
             float(v)
             for v in noise_rms(
@@ -159,6 +182,11 @@ def _summary(result: DesignResult, config: Config, w: FloatArray, dob_enabled: b
         disk_input=tuple(disk_margin(r.Si[:, i, i], w) for i in range(m_)),
         disk_output=tuple(disk_margin(r.S[:, i, i], w) for i in range(p_)),
         delay_margin_s=min(dms),
+        multiloop_input=multiloop_disk_margin(r.Si, w, where="plant input", response=lambda x: resp(x).Si),
+        multiloop_output=multiloop_disk_margin(r.S, w, where="plant output", response=lambda x: resp(x).S),
+        delay_margins_s=tuple(dms),
+        noise_peak_per_input_A=noise_rows,
+        noise_to_current_per_input=np.asarray(rows, dtype=np.float64),
     )
 
 
@@ -241,16 +269,28 @@ def _loop_dict(s: LoopSummary, period_s: float) -> dict[str, Any]:
         "peak_input_sensitivity": s.peak_Si.as_dict(),
         "disk_margins_plant_input": [d.as_dict() for d in s.disk_input],
         "disk_margins_plant_output": [d.as_dict() for d in s.disk_output],
+        "multiloop_disk_margin_plant_input": s.multiloop_input.as_dict(),
+        "multiloop_disk_margin_plant_output": s.multiloop_output.as_dict(),
         "delay_margin": {"s": _finite(s.delay_margin_s), "samples": _finite(s.delay_margin_s / period_s)},
+        "delay_margin_per_input": [
+            {"s": _finite(v), "samples": _finite(v / period_s)} for v in s.delay_margins_s
+        ],
         "noise_to_current": {
             "rms_A_per_count_rms": list(s.noise_rms_A),
             "peak_A_per_count": s.noise_peak_A.value,
             "peak_at_Hz": s.noise_peak_A.frequency_hz,
+            "peak_A_per_count_per_input": [p.value for p in s.noise_peak_per_input_A],
+            "peak_at_Hz_per_input": [p.frequency_hz for p in s.noise_peak_per_input_A],
         },
         "disturbance_to_output": {
             "peak": s.peak_disturbance.as_dict(),
             "lowest_grid_frequency_gain": s.low_frequency_disturbance_gain,
-            "at_configured_disturbances": [{"frequency_Hz": fr, "gain": g} for fr, g in s.disturbance_at],
+            "at_configured_disturbances": [
+                {"frequency_Hz": fr, "gain": g, "input_index": i, "gain_per_output": list(per_output)}
+                for (fr, g), (i, per_output) in zip(
+                    s.disturbance_at, s.disturbance_at_per_output, strict=True
+                )
+            ],
         },
     }
 
@@ -273,6 +313,8 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
         "n_plant_states": d.n_plant_states,
         "input_delay_samples": d.input_delay_samples,
         "state_names": list(d.state_names),
+        "input_names": list(d.input_names),
+        "output_names": list(d.output_names),
         "A": d.A.tolist(),
         "B": d.B.tolist(),
         "C_cont": d.C_cont.tolist(),
@@ -327,6 +369,7 @@ def report_dict(a: DesignAnalysis) -> dict[str, Any]:
             "target": "Gtl = C (zI - Phi)^-1 Phi Lc (eq. 8), loop broken at the plant output, DOB off",
             "R2": a.ltr.R2.tolist(),
             "band_Hz": list(a.ltr.band_hz),
+            "error": error_definition(d.n_outputs),
             "recovered_at_q": a.ltr.recovered_at_q,
             "obstructions": list(a.ltr.obstructions),
             "notes": list(a.ltr.notes),
@@ -360,6 +403,9 @@ def _optimize_dict(res: DesignResult) -> dict[str, Any] | None:
             "disk_gain_margin_dB": _finite(m.disk_gain_margin_db),
             "disk_phase_margin_deg": m.disk_phase_margin_deg,
             "delay_margin_s": _finite(m.delay_margin_s),
+            "multiloop_disk_margin_plant_input": (
+                None if m.multiloop_input is None else m.multiloop_input.as_dict()
+            ),
         }
 
     return {

@@ -13,8 +13,10 @@
    (DOB on, ``dob_enabled``, default ``run.dob_enabled``) or the estimator matrix (DOB off); each must
    be stable, otherwise DesignError names the matrix and its spectral radius.
 6. Robustness: :func:`dob_hil.design.robustness.design_warnings` lists every violated robustness bound
-   (peak |S|, margins, delay margin) and a weak DOB; they are in ``DesignResult.warnings`` and issued
-   as :class:`dob_hil.design.robustness.DesignWarning` (``warnings.warn``) so ``run`` shows them too.
+   (peak |S|, margins, delay margin, the multiloop disk margin at the plant input of a multi-input
+   plant against ``design.optimize.min_disk_*`` or the defaults) and a weak DOB; they are in
+   ``DesignResult.warnings`` and issued as :class:`dob_hil.design.robustness.DesignWarning`
+   (``warnings.warn``) so ``run`` shows them too.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from dob_hil.design.discretize import (
 from dob_hil.design.dob import DobDesign, design_dob
 from dob_hil.design.linalg import Matrix
 from dob_hil.design.riccati import DareSolution, solve_estimator_dare, solve_feedback_dare
-from dob_hil.design.robustness import DesignWarning, design_warnings
+from dob_hil.design.robustness import DesignWarning, DiskBounds, design_warnings
 from dob_hil.design.theorem1 import EXPRESSIONS, spectral_radii, unstable_parts
 from dob_hil.errors import DesignError
 
@@ -173,7 +175,10 @@ def design_with_diagnostics(
         spectral_radii=radii,
         gain_sources=sources,
     )
-    notes = dob.warnings + design_warnings(design, dob_on, config.drive.encoder_counts_per_unit)
+    disk = DiskBounds.from_config(dc.optimize.min_disk_gain_margin_dB, dc.optimize.min_disk_phase_margin_deg)
+    notes = dob.warnings + design_warnings(
+        design, dob_on, config.drive.encoder_counts_per_unit, disk_bounds=disk
+    )
     for note in notes:
         warnings.warn(note, DesignWarning, stacklevel=2)
     return DesignResult(design, est_sol, fb_sol, dob, Gam1, D1, q, R2, dob_on, notes, optimized)

@@ -7,7 +7,8 @@ Problem (``[design.optimize]``, see ``dob_hil.config.OptimizeConfig``)::
                peak |S| <= max_peak_S, peak |T| <= max_peak_T
                RMS noise-to-current <= max_noise_rms_A, peak <= max_noise_peak_A (if given)
                |GM| >= min_gain_margin_dB, PM >= min_phase_margin_deg (loop at a time, plant input)
-               balanced disk margins >= min_disk_gain_margin_dB / min_disk_phase_margin_deg (if given)
+               balanced disk margins >= min_disk_gain_margin_dB / min_disk_phase_margin_deg (if given;
+               loop at a time, and for several inputs also the multiloop margin at the plant input)
                delay margin >= min_delay_margin_samples
 
 over ``Kdist Lc`` (tune = "kdist"; Kdist = (Kdist Lc) pinv(Lc)) or directly over Lc, Kc and Kdist Lc
@@ -135,14 +136,14 @@ class Problem:
 
 def _problem(
     Phi: Matrix, Gam: Matrix, Gam_w: Matrix, C: Matrix, *, Lc: Matrix, Kc: Matrix, KdLc0: Matrix,
-    tune: str, period_s: float, band: FloatArray, count: float,
+    tune: str, period_s: float, band: FloatArray, count: float, multiloop: bool = False,
 ) -> Problem:  # fmt: skip
     w = analysis_grid_rad_s(period_s, 400)
 
     def merit(L: Matrix, K: Matrix, Kd: Matrix) -> Merit:
         return evaluate(
             Phi, Gam, Gam_w, C, Lc=L, Kc=K, Kdist=Kd, period_s=period_s, omega_rad_s=w, band_hz=band,
-            count=count,
+            count=count, multiloop=multiloop,
         )  # fmt: skip
 
     def kdist(KdLc: Matrix, L: Matrix) -> Matrix:
@@ -269,9 +270,11 @@ def optimize_design(
     period_s = config.plant.period_ns * 1e-9
     count = 1.0 / config.drive.encoder_counts_per_unit
     KdLc0 = _starting_product(Phi, Gam, Gam_w, C, Lc, config.design.dob.Kdist)
+    # several inputs and a disk bound: bound the multiloop disk margin too (what the design warns on)
+    disk = cfg.min_disk_gain_margin_dB is not None or cfg.min_disk_phase_margin_deg is not None
     problem = _problem(
         Phi, Gam, Gam_w, C, Lc=Lc, Kc=Kc, KdLc0=KdLc0, tune=cfg.tune, period_s=period_s,
-        band=band_frequencies(band), count=count,
+        band=band_frequencies(band), count=count, multiloop=disk and Gam.shape[1] > 1,
     )  # fmt: skip
     start = problem.merit(*problem.unpack(problem.x0))
     b = bounds if bounds is not None else _bounds(cfg, start)

@@ -2,12 +2,15 @@
 
 * ``sensitivity.png``: left, |S| and |T| at the plant output in dB up to Nyquist, DOB on (solid) and
   off (dashed), peaks and the configured disturbance frequencies marked (the paper's Figure 5;
-  sigma_max for MIMO loops); right, noise to current: sigma_max(K S) times one encoder count [A].
+  sigma_max for MIMO loops); right, noise to current: |K S| times one encoder count [A] (for several
+  inputs one curve per input: the 2-norm of row i of K S, the worst direction of the noise).
 * ``disturbance.png``: input disturbance w -> output y, with and without the DOB.
-* ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase.
+* ``dob_filter.png``: the disturbance-to-estimate filter Q(z) (w -> -u_dist), magnitude and phase
+  (several inputs: sigma_max, and each input's own Q_ii in magnitude and phase).
 * ``dob_locus.png``: eigenvalue magnitudes of Phi - Phi Lc C - Gam Kdist Lc C along the DOB gain
   direction, with the design, the fastest gain and the stability limit marked.
-* ``ltr.png``: the target loop Gtl and the loops Lo_q of the LTR sequence of q, with the error band.
+* ``ltr.png``: the target loop Gtl and the loops Lo_q of the LTR sequence of q, with the error band
+  (several outputs: sigma_max of each loop, and the target's sigma_min too).
 * ``tradeoff.png`` (``dob-hil design --optimize``): best worst-case rejection in the band against the
   RMS noise-to-current bound, from :func:`dob_hil.design.optimize.tradeoff_curve`.
 """
@@ -20,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dob_hil.design.analysis import DesignAnalysis
-from dob_hil.design.linalg import max_singular_value
+from dob_hil.design.linalg import max_singular_value, min_singular_value
 
 if TYPE_CHECKING:
     from dob_hil.config import Config
@@ -50,12 +53,20 @@ def _sensitivity(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     d = a.result.design
     f = a.frequency_hz
     nyq = 0.5e9 / d.period_ns
-    fig, (ax, axn) = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"wspace": 0.25})
+    wide = bool(tag)  # MIMO: longer legend entries need room between the panels
+    fig, (ax, axn) = plt.subplots(1, 2, figsize=(16 if wide else 13, 4.5),
+                                  gridspec_kw={"wspace": 0.55 if wide else 0.25})  # fmt: skip
     for s, style, label in ((a.dob_on, "-", "DOB on"), (a.dob_off, "--", "DOB off")):
         S, T = max_singular_value(s.response.S), max_singular_value(s.response.T)
         ax.semilogx(f, _db(S), "b" + style, label=f"S, {label}{tag}")
         ax.semilogx(f, _db(T), "r" + style, label=f"T, {label}{tag}")
-        axn.semilogx(f, s.noise_to_current, "k" + style, label=f"{label}: RMS {max(s.noise_rms_A):.3g} A")
+        if d.n_inputs == 1:
+            axn.semilogx(f, s.noise_to_current, "k" + style, label=f"{label}: RMS {max(s.noise_rms_A):.3g} A")
+            continue
+        for i in range(d.n_inputs):  # one curve per input: row i of K S, worst noise direction
+            name = d.input_names[i] if i < len(d.input_names) else str(i + 1)
+            axn.semilogx(f, s.noise_to_current_per_input[:, i], style, color=f"C{i}",
+                         label=f"input {i + 1} ({name}), {label}: RMS {s.noise_rms_A[i]:.3g} A")  # fmt: skip
     for pk, color, name in ((a.dob_on.peak_S, "b", "|S|"), (a.dob_on.peak_T, "r", "|T|")):
         ax.plot([pk.frequency_hz], [_db(pk.value)], color + "o")
         ax.annotate(f"peak {name} {pk.value:.3g}", (pk.frequency_hz, float(_db(pk.value))), fontsize=8,
@@ -69,7 +80,8 @@ def _sensitivity(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     ax.set_xlim(f[0], nyq)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
-    axn.set(xlabel="frequency [Hz]", ylabel=f"|u / n| x 1 count [A]{tag}",
+    ylabel = "|u / n| x 1 count [A]" if d.n_inputs == 1 else "||row i of K S|| x 1 count [A]"
+    axn.set(xlabel="frequency [Hz]", ylabel=ylabel,
             title="noise to current (one encoder count)")  # fmt: skip
     axn.set_xlim(f[0], nyq)
     axn.grid(True, which="both", alpha=0.3)
@@ -116,9 +128,21 @@ def _dob_filter(a: DesignAnalysis, out_dir: Path, plt: Any, tag: str) -> Path:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside the data
     if d.n_inputs == 1:
         axp.semilogx(f, np.degrees(np.unwrap(np.angle(a.Q[:, 0, 0]))), "b-")
-    axp.set(
-        xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "(MIMO: no phase) [deg]"
-    )
+    else:  # several inputs: each input's own estimate Q_ii (the off-diagonal entries are cross terms)
+        for i in range(d.n_inputs):
+            name = d.input_names[i] if i < len(d.input_names) else str(i + 1)
+            ax.semilogx(
+                f,
+                _db(np.abs(a.Q[:, i, i])),
+                "--",
+                color=f"C{i + 1}",
+                label=f"Q_{i + 1}{i + 1}, input {i + 1} ({name})",
+            )
+            axp.semilogx(f, np.degrees(np.unwrap(np.angle(a.Q[:, i, i]))), "--", color=f"C{i + 1}",
+                         label=f"Q_{i + 1}{i + 1}, input {i + 1} ({name})")  # fmt: skip
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        axp.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    axp.set(xlabel="frequency [Hz]", ylabel="phase of Q [deg]" if d.n_inputs == 1 else "phase of Q_ii [deg]")
     axp.set_xlim(f[0], 0.5e9 / d.period_ns)
     axp.grid(True, which="both", alpha=0.3)
     return _save(fig, out_dir / "dob_filter.png", plt)
@@ -150,6 +174,8 @@ def _ltr(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     f = a.frequency_hz
     fig, ax = plt.subplots(figsize=(8, 5))
     ax.semilogx(f, _db(max_singular_value(a.ltr.Gtl)), "k-", lw=2.0, label="target Gtl (eq. 8)")
+    if d.n_outputs > 1:  # the weak direction, where MIMO recovery is decided (ltr: Gtl^-1 error)
+        ax.semilogx(f, _db(min_singular_value(a.ltr.Gtl)), "k:", lw=2.0, label="target Gtl, sigma_min")
     cmap = plt.get_cmap("viridis")
     q_rows = [r for r in a.ltr.rows if r.q is not None]
     for i, row in enumerate(q_rows):
@@ -165,7 +191,9 @@ def _ltr(a: DesignAnalysis, out_dir: Path, plt: Any) -> Path:
     ax.axvspan(lo, hi, color="0.9", zorder=0, label="error band")
     ax.set(
         xlabel="frequency [Hz]",
-        ylabel="sigma_max of the loop at the plant output [dB]",
+        ylabel="sigma_max of the loop at the plant output [dB]"
+        if d.n_outputs == 1
+        else "singular value [dB]",
         title=f"{d.name}: loop transfer recovery (Lo = P K, DOB off)",
     )
     ax.set_xlim(f[0], 0.5e9 / d.period_ns)

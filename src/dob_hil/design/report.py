@@ -18,6 +18,8 @@ def _mat(name: str, value: list[list[float]], indent: str = "  ") -> list[str]:
 def _inline(value: object, precision: int = 5) -> str:
     """A matrix on one line: [[a, b], [c, d]]."""
     arr = np.array(value, dtype=np.float64)
+    big = float(np.max(np.abs(arr[np.isfinite(arr)]), initial=0.0))
+    arr = np.where(np.abs(arr) <= 1e-12 * big, 0.0, arr)  # rounding residue: 0, not -0.
     return np.array2string(
         arr, precision=precision, separator=", ", max_line_width=10**6, suppress_small=True
     ).replace("\n", "")
@@ -38,6 +40,89 @@ def _margins(label: str, items: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+def _gm(dm: dict[str, Any]) -> str:
+    """A balanced disk gain margin: +/-x dB, or inf (alpha >= 2, null in the JSON)."""
+    return "+/-inf dB" if dm["gain_margin_dB"] is None else f"+/-{dm['gain_margin_dB']:.2f} dB"
+
+
+def _channel(kind: str, i: int, names: list[str]) -> str:
+    """``input 1 (i1)``: channels counted from 1, with the config's name where it says more."""
+    label = f"{kind} {i + 1}"
+    return f"{label} ({names[i]})" if i < len(names) and names[i] not in ("", label) else label
+
+
+def _loop_mimo(title: str, loop: dict[str, Any], names: tuple[list[str], list[str]]) -> list[str]:
+    """A loop's figures for a plant with several inputs or outputs: one table row per channel (loop
+    at a time), the multiloop disk margins, and noise to current per input."""
+    ins, outs = names
+    ps, pt = loop["peak_sensitivity"], loop["peak_complementary_sensitivity"]
+    lines = [
+        f"  {title}:",
+        "    loop at a time (that channel broken, every other loop closed):",
+        f"      {'channel':18s} {'gain margin':>21s} {'phase margin':>21s} {'disk gain':>11s} "
+        f"{'disk phase':>12s} {'alpha':>6s} {'disk min at':>11s} {'delay margin':>22s}",
+    ]
+    rows = []
+    for kind in ("input", "output"):
+        pairs = zip(loop[f"margins_plant_{kind}"], loop[f"disk_margins_plant_{kind}"], strict=True)
+        rows += [(kind, i, m, d) for i, (m, d) in enumerate(pairs)]
+    for kind, i, m, d in rows:
+        gm = f"{_num(m['gain_margin_dB'], '.2f', ' dB')} at {_num(m['gain_margin_at_Hz'], '.1f', ' Hz')}"
+        pm = f"{_num(m['phase_margin_deg'], '.1f', ' deg')} at {_num(m['phase_margin_at_Hz'], '.1f', ' Hz')}"
+        delay = "-"
+        if kind == "input":
+            dm = loop["delay_margin_per_input"][i]
+            delay = "none" if dm["s"] is None else f"{dm['s'] * 1e6:.0f} us = {dm['samples']:.2f} samples"
+        names_ = ins if kind == "input" else outs
+        lines.append(
+            f"      {_channel(kind, i, names_):18s} {gm:>21s} {pm:>21s} {_gm(d):>11s} "
+            f"{'+/-' + format(d['phase_margin_deg'], '.1f') + ' deg':>12s} {d['alpha']:6.3f} "
+            f"{d['at_Hz']:8.1f} Hz {delay:>22s}"
+        )
+    for key in ("multiloop_disk_margin_plant_input", "multiloop_disk_margin_plant_output"):
+        mm = loop[key]
+        lo, hi = mm["alpha"], mm["alpha_upper_bound"]
+        bounds = "mu bounds agree" if hi - lo <= 1e-6 * lo else f"alpha_max <= {hi:.3f}"
+        lines.append(
+            f"    multiloop disk margin at the {mm['where']} (every channel perturbed at once): "
+            f"{_gm(mm)}, +/-{mm['phase_margin_deg']:.1f} deg "
+            f"(alpha {lo:.3f}, {bounds}; at {mm['at_Hz']:.1f} Hz)"
+        )
+    lines.append(
+        f"    peak sigma_max(S) {ps['value']:.3f} ({ps['dB']:.2f} dB) at {ps['at_Hz']:.1f} Hz; "
+        f"peak sigma_max(T) {pt['value']:.3f} ({pt['dB']:.2f} dB) at {pt['at_Hz']:.1f} Hz"
+    )
+    nz = loop["noise_to_current"]
+    lines.append("    noise to current (one encoder count; RMS: white, 1 count RMS on every output; "
+                 "peak: worst direction):")  # fmt: skip
+    for i, (rms, pk, at) in enumerate(
+        zip(
+            nz["rms_A_per_count_rms"],
+            nz["peak_A_per_count_per_input"],
+            nz["peak_at_Hz_per_input"],
+            strict=True,
+        )
+    ):
+        lines.append(f"      {_channel('input', i, ins):18s} RMS {rms:.4g} A, peak {pk:.4g} A at {at:.0f} Hz")
+    lines.append(f"      {'all inputs':18s} peak sigma_max(K S) {nz['peak_A_per_count']:.4g} A at "
+                 f"{nz['peak_at_Hz']:.0f} Hz")  # fmt: skip
+    dist = loop["disturbance_to_output"]
+    pk = dist["peak"]
+    lines.append(
+        f"    w -> y: peak sigma_max {pk['value']:.4g} at {pk['at_Hz']:.3g} Hz, at the lowest grid "
+        f"frequency {dist['lowest_grid_frequency_gain']:.4g}"
+    )
+    for item in dist["at_configured_disturbances"]:
+        per = ", ".join(
+            f"{_channel('output', j, outs)} {g:.4g}" for j, g in enumerate(item["gain_per_output"])
+        )
+        lines.append(
+            f"    w -> y at {item['frequency_Hz']:g} Hz (configured disturbance on "
+            f"{_channel('input', item['input_index'], ins)}): ||y / w|| {item['gain']:.4g}; {per}"
+        )
+    return lines
+
+
 def _loop(title: str, loop: dict[str, Any]) -> list[str]:
     ps, pt = loop["peak_sensitivity"], loop["peak_complementary_sensitivity"]
     dist = loop["disturbance_to_output"]
@@ -54,7 +139,7 @@ def _loop(title: str, loop: dict[str, Any]) -> list[str]:
     ):
         for i, dm in enumerate(loop[key]):
             lines.append(
-                f"    disk margin (balanced) {where}[{i}]: +/-{dm['gain_margin_dB']:.2f} dB, "
+                f"    disk margin (balanced) {where}[{i}]: {_gm(dm)}, "
                 f"+/-{dm['phase_margin_deg']:.1f} deg (alpha {dm['alpha']:.3f}, at {dm['at_Hz']:.1f} Hz)"
             )
     dm = loop["delay_margin"]
@@ -142,13 +227,16 @@ def format_report(r: dict[str, Any]) -> str:
             + (" -- alternates sign each sample: command chatter" if pf["kind"] == "negative real" else "")
         )
     lines += ["", "loop analysis (S, T at the plant output):"]
-    lines += _loop("DOB on", r["loop_dob_on"])
-    lines += _loop("DOB off", r["loop_dob_off"])
+    on = r["loop_dob_on"]
+    mimo = len(on["margins_plant_input"]) > 1 or len(on["margins_plant_output"]) > 1
+    names = (list(r.get("input_names", [])), list(r.get("output_names", [])))
+    for title, key in (("DOB on", "loop_dob_on"), ("DOB off", "loop_dob_off")):
+        lines += _loop_mimo(title, r[key], names) if mimo else _loop(title, r[key])
     ltr = r["ltr"]
     lo, hi = ltr["band_Hz"]
     lines += ["", f"loop transfer recovery: {ltr['target']}"]
     lines.append(
-        f"  error = sigma_max(Lo_q - Gtl) / sigma_max(Gtl); band {lo:.3g}-{hi:.3g} Hz "
+        f"  error = {ltr.get('error', 'sigma_max(Lo_q - Gtl) / sigma_max(Gtl)')}; band {lo:.3g}-{hi:.3g} Hz "
         "(design.feedback.ltr_band_hz); recovered = band error <= 10 %"
     )
     lines.append(

@@ -13,6 +13,7 @@
   f = (1 + delta/2) / (1 - delta/2), |delta| < alpha, that keeps the loop stable has
   alpha = 1 / max_w |s - 1/2| = 2 / max_w |s - t| (t = 1 - s). The disk gain margin is
   (1 + alpha/2) / (1 - alpha/2) (infinite for alpha >= 2) and the disk phase margin 2 atan(alpha/2).
+  The multiloop margin (all channels perturbed at once, a mu problem) is in ``multiloop``.
 * Delay margin: the extra loop delay that destabilises, min over the gain crossovers w_c of
   (angle(-l(w_c)) mod 2 pi) / w_c (loop at a time at the plant input, where a transport delay acts),
   in seconds and samples.
@@ -20,7 +21,8 @@
   are negative real (the mode alternates sign each sample: command chatter) or lightly damped
   (equivalent damping ratio of s = ln(z) / Ts below ``LIGHT_DAMPING``).
 
-:func:`design_warnings` checks a design against ``ROBUSTNESS_BOUNDS`` and says what is violated.
+:func:`design_warnings` checks a design against ``ROBUSTNESS_BOUNDS`` (and the configured disk-margin
+bounds) and says what is violated.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import numpy.typing as npt
 
 from dob_hil.design.linalg import CMatrix, Matrix, max_singular_value
 from dob_hil.design.loops import LoopResponse, controller_state_space, loop_response
+from dob_hil.design.multiloop import MultiloopDiskMargin, balanced_disk_gain_phase, multiloop_disk_margin
 from dob_hil.design.theorem1 import dob_matrix, feedback_matrix
 
 if TYPE_CHECKING:
@@ -47,8 +50,16 @@ ROBUSTNESS_BOUNDS: dict[str, float] = {
     "min_gain_margin_dB": 6.0,
     "min_phase_margin_deg": 30.0,
     "min_delay_margin_samples": 1.0,
+    # the balanced multiloop disk margin at the plant input (all inputs perturbed at once), checked for
+    # multi-input plants; ``design.optimize.min_disk_gain_margin_dB`` / ``min_disk_phase_margin_deg``
+    # replace these and then apply to single-input plants too (where it is the loop's disk margin)
+    "min_disk_gain_margin_dB": 6.0,
+    "min_disk_phase_margin_deg": 30.0,
 }
 LIGHT_DAMPING = 0.1
+# a multiloop disk margin within this fraction of its bound meets it (the optimiser bounds it on a
+# coarser grid than the report's refined one)
+DISK_BOUND_TOLERANCE = 1e-3
 NEGATIVE_REAL_MIN_MAGNITUDE = 0.3
 
 
@@ -63,10 +74,15 @@ class DiskMargin:
     phase_margin_deg: float
     at_hz: float
 
-    def as_dict(self) -> dict[str, float]:
+    def as_dict(self) -> dict[str, float | None]:
+        """JSON form; an infinite gain margin (alpha >= 2) is null. The balanced disk's gain range
+        is [-gain_margin_dB, +gain_margin_dB] (``gain_margin_low_dB``, ``gain_margin_high_dB``)."""
+        gm = self.gain_margin_db if math.isfinite(self.gain_margin_db) else None
         return {
             "alpha": self.alpha,
-            "gain_margin_dB": self.gain_margin_db,
+            "gain_margin_dB": gm,
+            "gain_margin_low_dB": None if gm is None else -gm,
+            "gain_margin_high_dB": gm,
             "phase_margin_deg": self.phase_margin_deg,
             "at_Hz": self.at_hz,
         }
@@ -77,8 +93,7 @@ def disk_margin(s: npt.NDArray[np.complex128], omega_rad_s: FloatArray) -> DiskM
     dist = np.abs(np.asarray(s) - 0.5)
     i = int(np.argmax(dist))
     alpha = 1.0 / float(dist[i])
-    gm = math.inf if alpha >= 2.0 else 20.0 * math.log10((1.0 + alpha / 2.0) / (1.0 - alpha / 2.0))
-    pm = math.degrees(2.0 * math.atan(alpha / 2.0))
+    gm, pm = balanced_disk_gain_phase(alpha)
     return DiskMargin(alpha, gm, pm, float(omega_rad_s[i]) / (2.0 * math.pi))
 
 
@@ -195,6 +210,9 @@ class Merit:
     phase_margin_deg: float
     delay_margin_s: float
     closed_loop_radius: float
+    multiloop_input: MultiloopDiskMargin | None = None  # evaluate(multiloop=True) only
+    # per input (loop at a time): gain margin dB, phase margin deg, delay margin s
+    input_margins: tuple[tuple[float, float, float], ...] = ()
 
     @property
     def worst_rejection(self) -> float:
@@ -202,11 +220,19 @@ class Merit:
 
     @property
     def disk_gain_margin_db(self) -> float:
-        return min(d.gain_margin_db for d in self.disk_input + self.disk_output)
+        """The smallest balanced disk gain margin: loop at a time at the plant input and output, and
+        the multiloop one at the plant input when computed."""
+        values = [d.gain_margin_db for d in self.disk_input + self.disk_output]
+        if self.multiloop_input is not None:
+            values.append(self.multiloop_input.gain_margin_db)
+        return min(values)
 
     @property
     def disk_phase_margin_deg(self) -> float:
-        return min(d.phase_margin_deg for d in self.disk_input + self.disk_output)
+        values = [d.phase_margin_deg for d in self.disk_input + self.disk_output]
+        if self.multiloop_input is not None:
+            values.append(self.multiloop_input.phase_margin_deg)
+        return min(values)
 
 
 def _diag(F: CMatrix, i: int) -> npt.NDArray[np.complex128]:
@@ -226,8 +252,10 @@ def evaluate(
     omega_rad_s: FloatArray,
     band_hz: FloatArray,
     count: float,
+    multiloop: bool = False,
 ) -> Merit:
-    """All figures of merit on the grid ``omega_rad_s`` (ascending, ending at Nyquist)."""
+    """All figures of merit on the grid ``omega_rad_s`` (ascending, ending at Nyquist); with
+    ``multiloop`` also the multiloop disk margin at the plant input (on the grid, not refined)."""
     r: LoopResponse = loop_response(
         Phi, Gam, Gam_w, C, Lc=Lc, Kc=Kc, Kdist=Kdist, period_s=period_s, omega_rad_s=omega_rad_s
     )
@@ -262,6 +290,8 @@ def evaluate(
         phase_margin_deg=min(pms, key=abs),
         delay_margin_s=min(dms),
         closed_loop_radius=radius,
+        multiloop_input=multiloop_disk_margin(r.Si, w, where="plant input") if multiloop else None,
+        input_margins=tuple(zip(gms, pms, dms, strict=True)),
     )
 
 
@@ -274,9 +304,67 @@ def analysis_grid_rad_s(period_s: float, points: int = 600) -> FloatArray:
     return np.asarray(grid, dtype=np.float64)
 
 
-def design_warnings(design: Design, dob_enabled: bool, counts_per_unit: float) -> tuple[str, ...]:
+@dataclass(frozen=True)
+class DiskBounds:
+    """Lower bounds on the balanced multiloop disk margin at the plant input (None: not imposed) and
+    whether they were configured (``design.optimize.min_disk_*``) or are the defaults."""
+
+    gain_margin_db: float | None
+    phase_margin_deg: float | None
+    configured: bool
+
+    @classmethod
+    def from_config(cls, gain_margin_db: float | None, phase_margin_deg: float | None) -> DiskBounds:
+        if gain_margin_db is None and phase_margin_deg is None:
+            b = ROBUSTNESS_BOUNDS
+            return cls(b["min_disk_gain_margin_dB"], b["min_disk_phase_margin_deg"], False)
+        return cls(gain_margin_db, phase_margin_deg, True)
+
+
+def plant_input_multiloop(design: Design, Kdist: Matrix, omega_rad_s: FloatArray) -> MultiloopDiskMargin:
+    """The balanced multiloop disk margin at the plant input (``multiloop``) of the run-time loop."""
+
+    def si(x: FloatArray) -> CMatrix:
+        return loop_response(
+            design.Phi, design.Gam, design.Gam_w, design.C, Lc=design.Lc, Kc=design.Kc, Kdist=Kdist,
+            period_s=design.period_s, omega_rad_s=x,
+        ).Si  # fmt: skip
+
+    return multiloop_disk_margin(si(omega_rad_s), omega_rad_s, where="plant input", response=si)
+
+
+def multiloop_warnings(m: MultiloopDiskMargin, bounds: DiskBounds, which: str) -> list[str]:
+    """Messages for a multiloop disk margin below ``bounds``."""
+    out = []
+
+    def src(key: str) -> str:
+        name = f"design.optimize.min_disk_{key}"
+        return name if bounds.configured else f"default bound; {name} sets it"
+
+    tail = f" at {m.at_hz:.3g} Hz (alpha {m.alpha:.3g}; every input perturbed at once)"
+    tol = 1.0 - DISK_BOUND_TOLERANCE
+    if bounds.gain_margin_db is not None and m.gain_margin_db < bounds.gain_margin_db * tol:
+        out.append(
+            f"robustness {which}: multiloop disk gain margin at the plant input +/-{m.gain_margin_db:.3g} dB "
+            f"< {bounds.gain_margin_db:g} dB ({src('gain_margin_dB')}){tail}"
+        )
+    if bounds.phase_margin_deg is not None and m.phase_margin_deg < bounds.phase_margin_deg * tol:
+        out.append(
+            f"robustness {which}: multiloop disk phase margin at the plant input +/-{m.phase_margin_deg:.3g} "
+            f"deg < {bounds.phase_margin_deg:g} deg ({src('phase_margin_deg')}){tail}"
+        )
+    return out
+
+
+def design_warnings(
+    design: Design, dob_enabled: bool, counts_per_unit: float, *, disk_bounds: DiskBounds | None = None
+) -> tuple[str, ...]:
     """Messages for every violated ``ROBUSTNESS_BOUNDS`` entry of the loop that will run (with the
-    DOB when ``dob_enabled``) and for a DOB that cuts the delay margin below one sample."""
+    DOB when ``dob_enabled``), for a DOB that cuts the delay margin below one sample, and for a
+    balanced multiloop disk margin at the plant input below ``disk_bounds`` (default: the
+    ``ROBUSTNESS_BOUNDS`` disk entries). The multiloop check runs for multi-input plants, and for a
+    single-input plant only when the bounds were configured (SISO designs are otherwise covered by
+    the gain and phase margin bounds, as before)."""
     Kd = design.Kdist if dob_enabled else np.zeros_like(design.Kdist)
     w = analysis_grid_rad_s(design.period_s)
 
@@ -291,17 +379,27 @@ def design_warnings(design: Design, dob_enabled: bool, counts_per_unit: float) -
         return ()  # refused by the Theorem-1 gate
     b = ROBUSTNESS_BOUNDS
     which = "with the DOB" if dob_enabled else "without the DOB"
+
+    def at(k: int, value: float) -> str:
+        """Which input sets a loop-at-a-time margin (several inputs only)."""
+        if design.n_inputs == 1:
+            return ""
+        i = next(i for i, row in enumerate(m.input_margins) if row[k] == value)
+        name = design.input_names[i] if i < len(design.input_names) else ""
+        return f" at input {i + 1}{f' ({name})' if name else ''} (loop at a time)"
+
     out = []
     if m.peak_S > b["max_peak_S"]:
         out.append(f"robustness {which}: peak |S| = {m.peak_S:.3g} > {b['max_peak_S']:g}")
     if abs(m.gain_margin_db) < b["min_gain_margin_dB"]:
         out.append(
             f"robustness {which}: gain margin {m.gain_margin_db:.3g} dB < {b['min_gain_margin_dB']:g} dB"
+            + at(0, m.gain_margin_db)
         )
     if m.phase_margin_deg < b["min_phase_margin_deg"]:
         out.append(
             f"robustness {which}: phase margin {m.phase_margin_deg:.3g} deg "
-            f"< {b['min_phase_margin_deg']:g} deg"
+            f"< {b['min_phase_margin_deg']:g} deg" + at(1, m.phase_margin_deg)
         )
     dm_samples = m.delay_margin_s / design.period_s
     if dm_samples < b["min_delay_margin_samples"]:
@@ -312,6 +410,9 @@ def design_warnings(design: Design, dob_enabled: bool, counts_per_unit: float) -
                 cause = f" (the DOB cuts it from {off:.2f} samples)"
         out.append(
             f"robustness {which}: delay margin {1e6 * m.delay_margin_s:.0f} us = {dm_samples:.2f} "
-            f"samples < {b['min_delay_margin_samples']:g} sample{cause}"
+            f"samples{at(2, m.delay_margin_s)} < {b['min_delay_margin_samples']:g} sample{cause}"
         )
+    bounds = disk_bounds if disk_bounds is not None else DiskBounds.from_config(None, None)
+    if design.n_inputs > 1 or bounds.configured:
+        out += multiloop_warnings(plant_input_multiloop(design, Kd, w), bounds, which)
     return tuple(out)
