@@ -70,28 +70,29 @@ def steady_tracking_rms(
     data: LogData,
     C_design: FloatArray,
     C_plant: FloatArray,
-    from_s: float,
+    from_sample: int,
     keep: npt.NDArray[np.bool_] | None = None,
 ) -> FloatArray:
-    """RMS of reference minus *true* output (ground truth ``C x``), per output, over the run from
-    ``from_s`` after the drive was enabled to the last sample, while the reference holds still.
+    """RMS of reference minus *true* output (ground truth ``C x``), per output, over the truth
+    records from sample ``from_sample``'s instant to the last sample's, while the reference holds
+    still (checked: the scenario's steps are settled by then).
 
     Only the drive's own records are used (no pairing of samples with truth records by time, which
-    real time cannot make exact); the reference must be constant over that window (checked: the
-    scenario's steps are settled by then).
+    real time cannot make exact). The reference is indexed by sample (every sample is logged, in
+    order), so the window starts at a sample, not at a time: in real time a stall can put sample k
+    well after ``k Ts``.
     """
     s, t = data.samples, data.truth
     ref = s["x_ref"] @ C_design.T
-    t0 = int(s["time_ns"][0])
-    in_window = (s["time_ns"].astype(np.int64) - t0) >= from_s * 1e9
-    setpoint = ref[in_window][-1]
-    np.testing.assert_allclose(ref[in_window], np.broadcast_to(setpoint, ref[in_window].shape), atol=1e-12)
+    setpoint = ref[-1]
+    np.testing.assert_allclose(
+        ref[from_sample:], np.broadcast_to(setpoint, ref[from_sample:].shape), atol=1e-12
+    )
     t_ns = t["time_ns"].astype(np.int64)
     enabled = t["drive_state"] == 1
-    start_ns = int(t_ns[enabled].min()) + round(from_s * 1e9)
-    window = enabled & (t_ns >= start_ns) & (t_ns <= int(s["time_ns"][-1]))
+    window = enabled & (t_ns >= int(s["time_ns"][from_sample])) & (t_ns <= int(s["time_ns"][-1]))
     if keep is None:
-        assert np.count_nonzero(window) > 0.5 * np.count_nonzero(in_window), "too few truth records"
+        assert np.count_nonzero(window) > 0.5 * (len(s) - from_sample), "too few truth records"
     else:
         window &= keep
     err = setpoint - t["state"][window] @ C_plant.T

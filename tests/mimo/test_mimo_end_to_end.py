@@ -73,7 +73,8 @@ def _check_run(config: Config, summary: RunSummary, data: LogData, drive: MultiA
 
 def _errors(config: Config, data: LogData, keep: Any = None) -> np.ndarray:  # type: ignore[type-arg]
     design = build_design(config, dob_enabled=True)
-    return steady_tracking_rms(data, np.asarray(design.C), np.asarray(config.plant.C), ERROR_FROM_S, keep)
+    from_sample = round(ERROR_FROM_S / config.plant.period_s)
+    return steady_tracking_rms(data, np.asarray(design.C), np.asarray(config.plant.C), from_sample, keep)
 
 
 def test_lockstep_the_dob_halves_the_tracking_error_on_both_outputs(
@@ -121,7 +122,8 @@ def test_real_time_the_dob_halves_the_tracking_error_on_both_outputs(
             assert summary.mode == "realtime" and summary.samples == 1000
             keep = undisturbed_truth(data, settle_s=SETTLE_S)
             t_ns = data.truth["time_ns"].astype(np.int64)
-            measured = keep & (t_ns >= int(data.samples["time_ns"][0]) + round(ERROR_FROM_S * 1e9))
+            from_ns = int(data.samples["time_ns"][round(ERROR_FROM_S / config.plant.period_s)])
+            measured = keep & (t_ns >= from_ns)
             if np.count_nonzero(measured) < MIN_UNDISTURBED:
                 starved.append(f"DOB {'on' if dob else 'off'}: {np.count_nonzero(measured)}")
                 break

@@ -7,7 +7,8 @@ enable and stop sequences), composed here over one bus:
 
 * **Routing.** One reader (:class:`BusRouter`) reads the bus and hands every frame of an axis's
   node to that axis's queue (:class:`AxisBus`, the bus the axis's link sees); the axis's link
-  reads its queue as it would the bus, reading the shared bus on when its queue is empty. Frames
+  reads its queue as it would the bus, reading the shared bus on when its queue is empty (its
+  receipt time is when it reads the frame, in the same receive call as the router). Frames
   of no axis's node (other nodes, other ids, 29-bit ids, remote and error frames) go to the frame
   hook and are reported here (FOREIGN_FRAME, ERROR_FRAME).
 * **One feedback per period.** :meth:`MultiAxisNativeLink.receive_feedback` collects each axis's
@@ -191,9 +192,6 @@ class AxisBus(can.BusABC):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(timeout), False
-
-    def shutdown(self) -> None:  # the shared bus belongs to the multi-axis link
-        super().shutdown()
 
 
 class MultiAxisNativeLink:
