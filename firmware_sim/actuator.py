@@ -47,5 +47,10 @@ class CurrentPath:
             del times[:n], self._currents_A[:n]
 
     @property
+    def final_A(self) -> float:
+        """The current held once every change already scheduled is due."""
+        return self._currents_A[-1] if self._currents_A else self.held_A
+
+    @property
     def pending(self) -> int:
         return len(self._times_ns)

@@ -29,7 +29,9 @@ import can
 
 from dob_hil.config import Config, load_config
 from dob_hil.errors import ConfigError, DobHilError
+from dob_hil.link.axes import axis_node_ids, check_square
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
+from firmware_sim.axes import MultiAxisDrive, make_simulated_drive
 from firmware_sim.behaviour import VARIANTS
 from firmware_sim.cia402 import SimulatedCia402Drive
 from firmware_sim.drive import SimulatedDrive
@@ -133,7 +135,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         for key in ("interface", "channel", "bitrate"):
             if getattr(args, key) is not None:
                 bus_kwargs[key] = getattr(args, key)
-        check_single_axis(config.plant)  # refuse the plant before opening a bus
+        if config.drive.profile == "native" and config.plant.n_inputs > 1:  # several axes on one bus
+            nodes = axis_node_ids(config.drive, check_square(config.plant))  # refused before the bus
+        else:
+            check_single_axis(config.plant)  # refuse the plant before opening a bus
+            nodes = (config.drive.node_id,)
     except DobHilError as exc:
         return _fail(2, str(exc))
     try:
@@ -158,14 +164,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         for refused in rt.refused:
             print(f"{PROG}: warning: {refused}", file=sys.stderr, flush=True)
         spin_ns = _spin_ns(args, rt.applied)
-        drive: SimulatedDrive | SimulatedCia402Drive | SimulatedOdrive
+        drive: SimulatedDrive | MultiAxisDrive | SimulatedCia402Drive | SimulatedOdrive
         try:
             if config.drive.profile == "cia402":  # the host's SYNC is this drive's clock: no timer to spin
                 drive = SimulatedCia402Drive(bus, config, clock="realtime", truth_sink=sink)
             elif config.drive.profile == "odrive":  # the simulated ODrive (CANSimple)
                 drive = SimulatedOdrive(bus, config, clock="realtime", truth_sink=sink, spin_ns=spin_ns)
-            else:
-                drive = SimulatedDrive(
+            else:  # one node, or one per axis of a multi-input plant
+                drive = make_simulated_drive(
                     bus,
                     config,
                     clock="realtime",
@@ -177,7 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("config", f"{args.config}: the simulated drive cannot run it: {exc}") from None
         drive.start()
         print(
-            f"{PROG}: node {config.drive.node_id} on {bus.channel_info}, "
+            f"{PROG}: {'nodes' if len(nodes) > 1 else 'node'} {', '.join(map(str, nodes))} "
+            f"on {bus.channel_info}, "
             f"period {config.plant.period_ns / 1000:g} us, watchdog {config.drive.watchdog_periods} periods, "
             f"spin {spin_ns / 1000:g} us{_variant_text(args.variant)}; {READY_TEXT}",
             file=sys.stderr,
@@ -196,6 +203,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{PROG}: stopped: {drive.stats}", file=sys.stderr)
         else:
             stats = drive.stats
+            if isinstance(drive, MultiAxisDrive):  # per-node firmware counters, summed
+                per_axis = drive.axis_stats
+                stats.samples = per_axis[0].samples
+                stats.commands_accepted = sum(a.commands_accepted for a in per_axis)
             print(
                 f"{PROG}: stopped after {stats.samples} samples "
                 f"({stats.feedback_sent} feedback sent, {stats.feedback_lost} lost, "

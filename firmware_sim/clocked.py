@@ -11,9 +11,31 @@ from __future__ import annotations
 
 import contextlib
 from types import TracebackType
-from typing import Generic, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Generic, Literal, Protocol, TypeVar
+
+if TYPE_CHECKING:
+    from dob_hil.link.protocol import DriveState
+    from firmware_sim.core import DriveStats
+    from firmware_sim.plant import PlantModel
 
 ClockKind = Literal["lockstep", "realtime"]
+
+
+class CoreReadout(Protocol):
+    """What read-outs take of a simulated drive's firmware core (firmware_sim.core.DriveCore,
+    firmware_sim.axes.core.MultiAxisCore)."""
+
+    time_ns: int
+    stats: DriveStats
+
+    @property
+    def state(self) -> DriveState: ...
+
+    @property
+    def period_index(self) -> int: ...
+
+    @property
+    def plant(self) -> PlantModel: ...
 
 
 class LockstepClockLike(Protocol):

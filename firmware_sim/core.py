@@ -136,8 +136,14 @@ class DriveCore:
         accept_window: int,
         want_truth: bool,
         behaviour: DriveBehaviour = REFERENCE,
+        plant_model: PlantModel | None = None,
+        disturbance: Disturbance | None = None,
     ) -> None:
-        check_single_axis(config.plant)
+        """``plant_model``, ``disturbance``: given by a drive of several axes (firmware_sim.axes),
+        whose axes share one coupled plant: this core reads its axis's output from it, sets the
+        disturbance's origin at its first enable, and never integrates (the multi-axis core does)."""
+        if plant_model is None:
+            check_single_axis(config.plant)
         self.behaviour = behaviour
         self.version = behaviour.protocol_version
         drive, sim, plant = config.drive, config.sim, config.plant
@@ -151,9 +157,11 @@ class DriveCore:
         self.delay_ns = plant.input_delay_samples * plant.period_ns
         self.accept_window = accept_window
         self.want_truth = want_truth
-        self.disturbance = Disturbance(sim.disturbances, plant.period_s / sim.substeps)
-        self.disturbance.origin_s = None  # zero until the first enable
-        self.plant = PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
+        if disturbance is None:
+            disturbance = Disturbance(sim.disturbances, plant.period_s / sim.substeps)
+            disturbance.origin_s = None  # zero until the first enable
+        self.disturbance = disturbance
+        self.plant = plant_model or PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
         self.dac = Dac(drive.dac_lsb_A, drive.current_limit_A)
         self.encoder = Encoder(
             drive.encoder_counts_per_unit, drive.encoder_bits, sim.noise_counts_std, sim.seed

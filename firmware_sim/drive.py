@@ -21,40 +21,35 @@ The drive does not own the bus: :meth:`close` stops the drive, the caller shuts 
 
 from __future__ import annotations
 
+from typing import Protocol, TypeVar
+
 import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
-from firmware_sim.clocked import ClockedDrive, ClockKind
+from firmware_sim.clocked import ClockedDrive, ClockKind, CoreReadout, LockstepClockLike, RealtimeClockLike
 from firmware_sim.core import DriveStats, TruthSink
 from firmware_sim.lockstep import LockstepClock
 from firmware_sim.realtime import RealtimeClock
 
 
-class SimulatedDrive(ClockedDrive[LockstepClock, RealtimeClock]):
-    def __init__(
-        self,
-        bus: can.BusABC,
-        config: Config,
-        *,
-        clock: ClockKind = "lockstep",
-        truth_sink: TruthSink | None = None,
-        spin_ns: int = 0,
-        behaviour: DriveBehaviour = REFERENCE,
-    ) -> None:
-        """``spin_ns`` (real time only): busy-wait (yielding) this long before each deadline.
-        ``behaviour``: a variant PROTOCOL.md permits, or a deliberate violation
-        (:mod:`firmware_sim.behaviour`); default the reference drive."""
-        self.config = config
-        self.clock: ClockKind = clock
-        if clock == "lockstep":
-            self._lockstep = LockstepClock(bus, config, truth_sink, behaviour)
-        elif clock == "realtime":
-            self._realtime = RealtimeClock(bus, config, truth_sink, spin_ns=spin_ns, behaviour=behaviour)
-        else:
-            raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
-        self._closed = False
+class _LockstepReadout(LockstepClockLike, Protocol):
+    @property
+    def core(self) -> CoreReadout: ...
+
+
+class _RealtimeReadout(RealtimeClockLike, Protocol):
+    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]: ...
+
+
+LR = TypeVar("LR", bound=_LockstepReadout)
+RR = TypeVar("RR", bound=_RealtimeReadout)
+
+
+class SnapshotDrive(ClockedDrive[LR, RR]):
+    """The read-outs of a simulated drive whose clocks keep a firmware core (lockstep: read in
+    this thread; real time: one consistent snapshot under the clock's lock)."""
 
     # --- read-out ------------------------------------------------------------------------------
     @property
@@ -100,3 +95,28 @@ class SimulatedDrive(ClockedDrive[LockstepClock, RealtimeClock]):
             return self._realtime.snapshot()[4]
         assert self._lockstep is not None
         return DriveStats(**vars(self._lockstep.core.stats))
+
+
+class SimulatedDrive(SnapshotDrive[LockstepClock, RealtimeClock]):
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        *,
+        clock: ClockKind = "lockstep",
+        truth_sink: TruthSink | None = None,
+        spin_ns: int = 0,
+        behaviour: DriveBehaviour = REFERENCE,
+    ) -> None:
+        """``spin_ns`` (real time only): busy-wait (yielding) this long before each deadline.
+        ``behaviour``: a variant PROTOCOL.md permits, or a deliberate violation
+        (:mod:`firmware_sim.behaviour`); default the reference drive."""
+        self.config = config
+        self.clock: ClockKind = clock
+        if clock == "lockstep":
+            self._lockstep = LockstepClock(bus, config, truth_sink, behaviour)
+        elif clock == "realtime":
+            self._realtime = RealtimeClock(bus, config, truth_sink, spin_ns=spin_ns, behaviour=behaviour)
+        else:
+            raise ValueError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
+        self._closed = False

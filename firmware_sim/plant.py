@@ -68,7 +68,7 @@ class PlantModel:
         disturbance: Disturbance,
         initial_state: Sequence[float] | None = None,
     ) -> None:
-        check_single_axis(plant)
+        self._check_plant(plant)
         if substeps < 1:
             raise ConfigError("sim.substeps", f"must be >= 1, got {substeps}")
         self.n_states = plant.n_states
@@ -98,6 +98,11 @@ class PlantModel:
                     "sim.initial_state", f"expected {self.n_states} values, got {len(initial_state)}"
                 )
             self._x = [float(v) for v in initial_state]
+
+    @staticmethod
+    def _check_plant(plant: PlantConfig) -> None:
+        """The plants this model integrates (one input here; see firmware_sim.axes.plant)."""
+        check_single_axis(plant)
 
     # --- read-out ------------------------------------------------------------------------------
     @property

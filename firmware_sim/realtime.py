@@ -35,12 +35,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import can
 
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
+from firmware_sim.clocked import CoreReadout
 from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
 
@@ -71,26 +73,33 @@ def _set_timer_slack_1ns() -> None:
         pass
 
 
-class RealtimeClock:
+Outgoing = list[tuple[int, bytes]]  # (arbitration id, payload)
+
+
+class ThreadedDriveClock:
+    """The two threads of a real-time simulated drive, around a firmware core the subclass owns.
+
+    Subclasses set ``_stats`` (the counters the clock updates), ``_rx_ids`` (the ids the firmware
+    acts on) and ``_feedback_ids``, and implement :meth:`_tick` (one sample instant: the frames to
+    send now, the FEEDBACK frames to send when due, the truth) and :meth:`_on_rx` (one received
+    frame, under the lock: the frames to send in answer). :class:`RealtimeClock` is one drive;
+    :class:`firmware_sim.axes.realtime.MultiAxisRealtimeClock` is several nodes on one clock.
+    """
+
+    core: CoreReadout
+    _stats: DriveStats
+    _rx_ids: frozenset[int]
+    _feedback_ids: frozenset[int]
+
     def __init__(
-        self,
-        bus: can.BusABC,
-        config: Config,
-        truth_sink: TruthSink | None = None,
-        *,
-        spin_ns: int = 0,
-        behaviour: DriveBehaviour = REFERENCE,
+        self, bus: can.BusABC, config: Config, truth_sink: Callable[[Any], None] | None, *, spin_ns: int
     ) -> None:
         self.bus = bus
-        window = min(config.drive.watchdog_periods, 64)
-        self.core = DriveCore(
-            config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
-        )
         self.truth_sink = truth_sink
         self.spin_ns = spin_ns
+        self.period_ns = config.plant.period_ns
         sim = config.sim
         self.impairment = FeedbackImpairment(sim.latency_us, sim.jitter_us, sim.loss_probability, sim.seed)
-        self._node_id = self.core.node_id
         self._lock = threading.Lock()  # guards the core
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -99,6 +108,25 @@ class RealtimeClock:
         self._commanded = False  # a valid command since the last sample
         self._t0_ns = 0
         self._started = False
+
+    # --- read-out ------------------------------------------------------------------------------
+    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
+        """(state, period index, true plant state, time, a copy of the counters), consistent."""
+        with self._lock:
+            c = self.core
+            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
+
+    # --- the firmware, per subclass ----------------------------------------------------------------
+    def _tick(self, k: int) -> tuple[Outgoing, Outgoing, Any]:
+        """Sample instant ``k`` (under the lock): (frames now, FEEDBACK frames when due, truth)."""
+        raise NotImplementedError
+
+    def _on_rx(self, arbitration_id: int, data: bytes | bytearray, t_ns: int) -> Outgoing:
+        """A frame of ``_rx_ids`` arrived at drive time ``t_ns`` (under the lock): frames to send."""
+        raise NotImplementedError
+
+    def _silent(self) -> bool:
+        raise NotImplementedError
 
     # --- life cycle ----------------------------------------------------------------------------
     def start(self) -> None:
@@ -136,12 +164,6 @@ class RealtimeClock:
                 self._error = exc
             self._stop.set()
 
-    # --- read-out ------------------------------------------------------------------------------
-    def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
-        with self._lock:
-            c = self.core
-            return c.state, c.period_index, c.plant.state, c.time_ns, DriveStats(**vars(c.stats))
-
     # --- threads -------------------------------------------------------------------------------
     def _wait_until(self, deadline_ns: int) -> bool:
         """Sleep (then spin, yielding, the last ``spin_ns``) until ``deadline_ns``; False if it had
@@ -164,8 +186,7 @@ class RealtimeClock:
     def _timer_loop(self) -> None:
         _set_timer_slack_1ns()
         realtime_policy = _realtime_policy()
-        core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
-        feedback_id = FrameKind.FEEDBACK + self._node_id
+        period_ns, t0 = self.period_ns, self._t0_ns
         outbox: collections.deque[tuple[int, int, bytes]] = collections.deque()  # (due, id, payload)
         delays = self.impairment.delays
         k = 0
@@ -180,35 +201,28 @@ class RealtimeClock:
             if self._stop.is_set():
                 return
             with self._lock:
-                core.integrate_to(k * period_ns)
-                if k > 0:
-                    core.period_boundary(self._commanded)
-                self._commanded = False
-                frames = core.take_outgoing()
-                payload, truth = core.sample()
-                lost = self.impairment.lost()
-                if lost:
-                    core.stats.feedback_lost += 1
-            for kind, data in frames:
-                self._send(kind + self._node_id, data)
-            if not lost:
+                frames, feedback, truth = self._tick(k)
+            for aid, data in frames:
+                self._send(aid, data)
+            if feedback:
                 due = self.impairment.due_ns(deadline) if delays else deadline
-                if due <= time.monotonic_ns() and not outbox:
-                    self._send(feedback_id, payload)
-                else:
-                    outbox.append((due, feedback_id, payload))
+                for aid, payload in feedback:
+                    if due <= time.monotonic_ns() and not outbox:
+                        self._send(aid, payload)
+                    else:
+                        outbox.append((due, aid, payload))
             if truth is not None and self.truth_sink is not None:
                 self.truth_sink(truth)
             k += 1
             latest = (time.monotonic_ns() - t0) // period_ns
             if latest > k:
                 with self._lock:
-                    core.stats.overruns += latest - k
+                    self._stats.overruns += latest - k
                 k = latest
 
     def _rx_loop(self) -> None:
-        core, t0 = self.core, self._t0_ns
-        command_id, control_id = core.command_id, core.control_id
+        t0 = self._t0_ns
+        rx_ids = self._rx_ids
         recv = self.bus.recv
         errors_in_row = 0
         while not self._stop.is_set():
@@ -217,7 +231,7 @@ class RealtimeClock:
             except can.CanError:
                 errors_in_row += 1
                 with self._lock:
-                    core.stats.rx_errors += 1
+                    self._stats.rx_errors += 1
                 if errors_in_row >= MAX_CONSECUTIVE_RX_ERRORS:
                     raise
                 continue
@@ -225,7 +239,7 @@ class RealtimeClock:
             if msg is None:
                 continue
             aid = msg.arbitration_id
-            if aid not in (command_id, control_id) or msg.is_extended_id or msg.is_error_frame:
+            if aid not in rx_ids or msg.is_extended_id or msg.is_error_frame:
                 continue  # includes our own frames echoed back by udp_multicast
             if msg.is_remote_frame:
                 continue
@@ -236,18 +250,14 @@ class RealtimeClock:
                 if abs(stamped - now) < TIMESTAMP_PLAUSIBLE_NS:
                     arrival = min(stamped, now)
             with self._lock:
-                t = max(arrival - t0, core.time_ns)
-                result = core.on_frame(aid, msg.data, t)
-                if result is FrameResult.COMMAND:
-                    self._commanded = True
-                frames = core.take_outgoing()
-            for kind, data in frames:
-                self._send(kind + self._node_id, data)
+                frames = self._on_rx(aid, msg.data, arrival - t0)
+            for out_id, data in frames:
+                self._send(out_id, data)
 
     def _send(self, arbitration_id: int, payload: bytes) -> None:
-        if self.core.silent:
+        if self._silent():
             with self._lock:
-                self.core.stats.frames_suppressed += 1
+                self._stats.frames_suppressed += 1
             return
         msg = can.Message(arbitration_id=arbitration_id, data=payload, is_extended_id=False)
         with self._send_lock:
@@ -255,8 +265,57 @@ class RealtimeClock:
                 self.bus.send(msg)
             except can.CanError:
                 with self._lock:
-                    self.core.stats.send_failures += 1
+                    self._stats.send_failures += 1
                 return
-        if arbitration_id == FrameKind.FEEDBACK + self._node_id:
+        if arbitration_id in self._feedback_ids:
             with self._lock:
-                self.core.stats.feedback_sent += 1
+                self._stats.feedback_sent += 1
+
+
+class RealtimeClock(ThreadedDriveClock):
+    """One simulated drive (:class:`~firmware_sim.core.DriveCore`) on the real-time clock."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        config: Config,
+        truth_sink: TruthSink | None = None,
+        *,
+        spin_ns: int = 0,
+        behaviour: DriveBehaviour = REFERENCE,
+    ) -> None:
+        super().__init__(bus, config, truth_sink, spin_ns=spin_ns)
+        window = min(config.drive.watchdog_periods, 64)
+        self.core: DriveCore = DriveCore(
+            config, accept_window=max(window, 2), want_truth=truth_sink is not None, behaviour=behaviour
+        )
+        self._node_id = self.core.node_id
+        self._stats = self.core.stats
+        self._rx_ids = frozenset((self.core.command_id, self.core.control_id))
+        self._feedback_id = FrameKind.FEEDBACK + self._node_id
+        self._feedback_ids = frozenset((self._feedback_id,))
+
+    # --- the firmware --------------------------------------------------------------------------
+    def _silent(self) -> bool:
+        return self.core.silent
+
+    def _tick(self, k: int) -> tuple[Outgoing, Outgoing, Any]:
+        core, node = self.core, self._node_id
+        core.integrate_to(k * self.period_ns)
+        if k > 0:
+            core.period_boundary(self._commanded)
+        self._commanded = False
+        frames = [(kind + node, data) for kind, data in core.take_outgoing()]
+        payload, truth = core.sample()
+        if self.impairment.lost():
+            core.stats.feedback_lost += 1
+            return frames, [], truth
+        return frames, [(self._feedback_id, payload)], truth
+
+    def _on_rx(self, arbitration_id: int, data: bytes | bytearray, t_ns: int) -> Outgoing:
+        core = self.core
+        result = core.on_frame(arbitration_id, data, max(t_ns, core.time_ns))
+        if result is FrameResult.COMMAND:
+            self._commanded = True
+        node = self._node_id
+        return [(kind + node, payload) for kind, payload in core.take_outgoing()]

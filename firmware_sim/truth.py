@@ -17,6 +17,22 @@ In-process it is handed to a ``truth_sink`` callable. A standalone drive
 
 :func:`decode_truth` reads it back and raises :class:`~dob_hil.errors.ProtocolError` for a
 datagram that is not of this layout.
+
+A drive of several axes (:mod:`firmware_sim.axes`, one current per plant input) sends version 2
+(:class:`AxesTruth`, ``32 + 8 (2 m + n)`` bytes, read back by :func:`decode_axes_truth`)::
+
+    offset size type     field
+    0      4    bytes    magic b"FSGT"
+    4      1    uint8    version (2)
+    5      1    uint8    drive_state (FAULT if any axis is, ENABLED if all are, else DISABLED)
+    6      2    uint16   n, the number of plant states
+    8      8    uint64   period_index
+    16     8    int64    time_ns
+    24     2    uint16   m, the number of inputs (axes)
+    26     6             zero
+    32     8 m  float64  disturbance_A[0..m-1]
+    ..     8 m  float64  applied_current_A[0..m-1]
+    ..     8 n  float64  state[0..n-1]
 """
 
 from __future__ import annotations
@@ -30,7 +46,9 @@ from dob_hil.link.protocol import DriveState
 
 TRUTH_MAGIC: Final = b"FSGT"
 TRUTH_VERSION: Final = 1
+AXES_TRUTH_VERSION: Final = 2
 _HEADER: Final = struct.Struct("<4sBBHQqdd")
+_AXES_HEADER: Final = struct.Struct("<4sBBHQqH6x")
 TRUTH_HEADER_SIZE: Final = _HEADER.size
 
 
@@ -41,6 +59,48 @@ class GroundTruth(NamedTuple):  # built every period: a tuple is cheaper than a 
     disturbance_A: float  # disturbance at the plant input at the sample instant
     applied_current_A: float  # drive current acting just before the sample instant (left limit)
     drive_state: DriveState
+
+
+class AxesTruth(NamedTuple):
+    """Ground truth of one sample instant of a drive of several axes (per input)."""
+
+    period_index: int
+    time_ns: int
+    state: tuple[float, ...]  # the coupled plant's true state
+    disturbance_A: tuple[float, ...]  # per input
+    applied_current_A: tuple[float, ...]  # per input, acting just before the instant
+    drive_state: DriveState  # FAULT if any axis is, ENABLED if all are, else DISABLED
+
+
+def encode_axes_truth(truth: AxesTruth) -> bytes:
+    n, m = len(truth.state), len(truth.disturbance_A)
+    head = _AXES_HEADER.pack(
+        TRUTH_MAGIC, AXES_TRUTH_VERSION, int(truth.drive_state), n, truth.period_index, truth.time_ns, m
+    )
+    return head + struct.pack(f"<{2 * m + n}d", *truth.disturbance_A, *truth.applied_current_A, *truth.state)
+
+
+def decode_axes_truth(data: bytes | bytearray | memoryview) -> AxesTruth:
+    """A version-2 datagram; :class:`ProtocolError` naming what is wrong otherwise."""
+    raw = bytes(data)
+    if len(raw) < _AXES_HEADER.size:
+        raise ProtocolError(f"ground truth datagram: expected >= {_AXES_HEADER.size} bytes, got {len(raw)}")
+    magic, version, drive_state, n, period_index, time_ns, m = _AXES_HEADER.unpack_from(raw)
+    if magic != TRUTH_MAGIC:
+        raise ProtocolError(f"ground truth datagram: bad magic {magic!r}, expected {TRUTH_MAGIC!r}")
+    if version != AXES_TRUTH_VERSION:
+        raise ProtocolError(f"ground truth datagram: version {version}, expected {AXES_TRUTH_VERSION}")
+    size = _AXES_HEADER.size + 8 * (2 * m + n)
+    if len(raw) != size:
+        raise ProtocolError(
+            f"ground truth datagram: {n} states and {m} inputs need {size} bytes, got {len(raw)}"
+        )
+    try:
+        state = DriveState(drive_state)
+    except ValueError:
+        raise ProtocolError(f"ground truth datagram: unknown drive state {drive_state}") from None
+    v = struct.unpack_from(f"<{2 * m + n}d", raw, _AXES_HEADER.size)
+    return AxesTruth(period_index, time_ns, tuple(v[2 * m :]), tuple(v[:m]), tuple(v[m : 2 * m]), state)
 
 
 def encode_truth(truth: GroundTruth) -> bytes:
@@ -80,7 +140,8 @@ def decode_truth(data: bytes | bytearray | memoryview) -> GroundTruth:
 
 
 class UdpTruthSender:
-    """A ``truth_sink`` sending each :class:`GroundTruth` as one datagram to ``host:port``.
+    """A ``truth_sink`` sending each :class:`GroundTruth` (or :class:`AxesTruth`) as one datagram
+    to ``host:port``.
 
     Sending never blocks and never raises (nobody listening is fine); failures are counted.
     """
@@ -93,9 +154,12 @@ class UdpTruthSender:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
 
-    def __call__(self, truth: GroundTruth) -> None:
+    def __call__(self, truth: GroundTruth | AxesTruth) -> None:
         try:
-            self._sock.sendto(encode_truth(truth), self.address)
+            if isinstance(truth, AxesTruth):
+                self._sock.sendto(encode_axes_truth(truth), self.address)
+            else:
+                self._sock.sendto(encode_truth(truth), self.address)
         except OSError:
             self.send_failures += 1
 

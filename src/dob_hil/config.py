@@ -128,6 +128,7 @@ class DesignConfig:
 class DriveConfig:
     profile: str = "native"
     node_id: int = 1
+    node_ids: tuple[int, ...] | None = None  # one per axis (multi-input plants); None: node_id + i
     bitrate_bps: int = 1_000_000
     current_limit_A: float = 0.7
     dac_lsb_A: float = 1.0 / 2048.0
@@ -448,6 +449,8 @@ def _parse_drive(s: _Section) -> DriveConfig:
         )
     if d.current_limit_A < d.dac_lsb_A:
         raise ConfigError(s.name("current_limit_A"), "is smaller than one DAC LSB")
+    if d.node_ids is not None and len(set(d.node_ids)) != len(d.node_ids):
+        raise ConfigError(s.name("node_ids"), f"must be distinct, got {list(d.node_ids)}")
     s.finish()
     return d
 

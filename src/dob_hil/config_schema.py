@@ -252,6 +252,9 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "without feedback.", unit="periods", default=10, low=1, high=100_000),
         _f("clear_fault", "boolean", "Clear a fault the drive reports (e.g. one left by a killed "
            "run) before enabling; `dob-hil run --clear-fault` sets it.", default=False),
+        _f("node_ids", "integers", "Several axes (a plant with N > 1 inputs, one per output): "
+           "the CAN node id of each axis, distinct, axis i = input i and output i (native: "
+           "0..15).", low=0, high=127, default="node_id + i"),
     )),
     SectionSpec("sim", "The simulated drive (`firmware_sim`): plant integration and impairments.", (
         _f("substeps", "integer", "Integration substeps per period (ground-truth resolution).",

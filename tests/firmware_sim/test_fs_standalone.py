@@ -163,9 +163,9 @@ def test_sigterm_and_duration_stop_cleanly(tmp_path: Path) -> None:
     ("plant", "field"),
     [
         ({"A": [[0.0, 1.0, 2.0], [0.0, -128.59, 0.0]]}, "plant.A: must be square"),
-        (
+        (  # two inputs, one output: not square, so no axis per input and output
             {"B": [[0.0, 0.0], [1.0, 1.0]], "input_names": ["a", "b"]},
-            "plant.B: firmware_sim simulates a single-axis",
+            "plant.C: a drive runs one axis per input and output",
         ),
     ],
 )

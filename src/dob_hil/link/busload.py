@@ -11,7 +11,7 @@ Network (CAN) schedulability analysis: Refuted, revisited and revised", Real-Tim
 3-bit interframe space, which are not stuffed.
 
 Per control period the loop puts one FEEDBACK (drive->host) and one COMMAND (host->drive) on the
-bus; the drive's HEARTBEAT (``heartbeat_hz``) is amortised over the period. FAULT and CONTROL
+bus per axis (node); each node's HEARTBEAT (``heartbeat_hz``) is amortised over the period. FAULT and CONTROL
 frames are sporadic (start, stop, faults) and not counted.
 """
 
@@ -104,17 +104,19 @@ def cyclic_bus_load(
 
 
 def worst_case_bus_load(
-    drive: DriveConfig, period_ns: int, *, heartbeat_hz: float = DEFAULT_HEARTBEAT_HZ
+    drive: DriveConfig, period_ns: int, *, heartbeat_hz: float = DEFAULT_HEARTBEAT_HZ, n_axes: int = 1
 ) -> BusLoad:
-    """Worst-case bus load of one FEEDBACK + one COMMAND per period plus the heartbeat."""
+    """Worst-case bus load of one FEEDBACK + one COMMAND per period plus the heartbeat, per axis."""
     if isinstance(period_ns, bool) or not isinstance(period_ns, int) or period_ns <= 0:
         raise ConfigError("plant.period_us", f"the control period must be > 0 ns, got {period_ns!r}")
     if not heartbeat_hz >= 0.0:
         raise ConfigError("heartbeat_hz", f"must be >= 0, got {heartbeat_hz}")
+    if n_axes < 1:
+        raise ConfigError("plant.B", f"a drive has at least one axis, got {n_axes}")
     frames = {
-        FrameKind.FEEDBACK.name: (DLC[FrameKind.FEEDBACK], 1.0),
-        FrameKind.COMMAND.name: (DLC[FrameKind.COMMAND], 1.0),
-        FrameKind.HEARTBEAT.name: (DLC[FrameKind.HEARTBEAT], heartbeat_hz * period_ns * 1e-9),
+        FrameKind.FEEDBACK.name: (DLC[FrameKind.FEEDBACK], float(n_axes)),
+        FrameKind.COMMAND.name: (DLC[FrameKind.COMMAND], float(n_axes)),
+        FrameKind.HEARTBEAT.name: (DLC[FrameKind.HEARTBEAT], n_axes * heartbeat_hz * period_ns * 1e-9),
     }
     return cyclic_bus_load(drive.bitrate_bps, period_ns, frames, heartbeat_hz=heartbeat_hz)
 

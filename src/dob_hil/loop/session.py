@@ -47,6 +47,7 @@ from dob_hil.profiles import Clocking, DriveProfile, SimulatedCounterpart, get_p
 
 _channel_counter = itertools.count()
 EMBEDDED_RT_SWITCH_INTERVAL_S = 100e-6
+EMBEDDED_RT_STOP_GRACE_S = 1.0  # the embedded real-time drive's time to act on the stop sequence
 
 
 @dataclass(frozen=True)
@@ -196,6 +197,9 @@ def _truth_sink(log: LogWriter) -> Callable[[Any], None]:
 
     def sink(t: Any) -> None:
         period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+        if type(disturbance_A) is tuple:  # a multi-axis drive: one value per input already
+            write(time_ns, state, disturbance_A, applied_A, period_index, drive_state)
+            return
         write(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
 
     return sink
@@ -447,6 +451,11 @@ def _run_with_log(
                         break
                     drive.advance_period()
             else:
+                # the drive's own threads act on the stop sequence: give them a moment to
+                # (bounded: a stop that never arrives leaves the watchdog to the drive)
+                grace_end = time.monotonic() + EMBEDDED_RT_STOP_GRACE_S
+                while drive.enabled and time.monotonic() < grace_end:
+                    time.sleep(0.001)
                 drive.stop()
         if rt_report is not None:
             restore_rt_settings(rt, rt_report)

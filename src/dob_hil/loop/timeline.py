@@ -78,7 +78,9 @@ class LoopLog:
                 pending.popleft()
             )
             last = stamp_ns if stamp_ns > last else last
-            write(last, state, (disturbance_A,), (applied_A,), period_index, drive_state)
+            if type(disturbance_A) is not tuple:  # one drive; a multi-axis drive gives one per input
+                disturbance_A, applied_A = (disturbance_A,), (applied_A,)
+            write(last, state, disturbance_A, applied_A, period_index, drive_state)
         self._last_truth_ns = last
 
 

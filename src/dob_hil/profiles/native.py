@@ -4,17 +4,26 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from dob_hil.profiles.base import Clocking, DriveProfile, SimulatedCounterpart, TruthSink
+from dob_hil.profiles.base import Clocking, DriveProfile, QuantizeFn, SimulatedCounterpart, TruthSink
 
 if TYPE_CHECKING:
     import can
 
-    from dob_hil.config import Config
+    from dob_hil.config import Config, DriveConfig
     from dob_hil.link.base import DriveLink, EventHook, FrameHook
     from dob_hil.link.busload import BusLoad
 
 
 def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hook: EventHook) -> DriveLink:
+    """One node for a single-input plant; one node per axis (``drive.node_ids``) for N inputs."""
+    from dob_hil.link.axes import check_square
+
+    n_axes = check_square(config.plant)
+    if n_axes > 1:
+        from dob_hil.link.native_axes import MultiAxisNativeLink
+
+        return MultiAxisNativeLink(bus, config.drive, n_axes, frame_hook=frame_hook, event_hook=event_hook,
+                                   owns_bus=True, period_ns=config.plant.period_ns)  # fmt: skip
     from dob_hil.link.native import NativeDriveLink
 
     return NativeDriveLink(bus, config.drive, frame_hook=frame_hook, event_hook=event_hook, owns_bus=True)
@@ -23,16 +32,23 @@ def _make_link(bus: can.BusABC, config: Config, frame_hook: FrameHook, event_hoo
 def _make_sim(
     bus: can.BusABC, config: Config, clock: str, truth_sink: TruthSink | None
 ) -> SimulatedCounterpart:
-    from firmware_sim import SimulatedDrive
+    from firmware_sim.axes import make_simulated_drive
 
-    return SimulatedDrive(bus, config, clock="realtime" if clock == "realtime" else "lockstep",
-                          truth_sink=truth_sink)  # fmt: skip
+    return make_simulated_drive(bus, config, clock="realtime" if clock == "realtime" else "lockstep",
+                                truth_sink=truth_sink)  # fmt: skip
+
+
+def _make_quantizer(drive: DriveConfig) -> QuantizeFn:
+    """Each axis's DAC on its own current (one axis: DacQuantizer), for `replay`."""
+    from dob_hil.link.native_axes import axes_quantizer
+
+    return axes_quantizer(drive)
 
 
 def _bus_load(config: Config) -> BusLoad:
     from dob_hil.link.busload import worst_case_bus_load
 
-    return worst_case_bus_load(config.drive, config.plant.period_ns)
+    return worst_case_bus_load(config.drive, config.plant.period_ns, n_axes=config.plant.n_inputs)
 
 
 PROFILE = DriveProfile(
@@ -46,5 +62,7 @@ PROFILE = DriveProfile(
     make_link=_make_link,
     make_sim=_make_sim,
     bus_load=_bus_load,
-    tested="byte-exact codec, cantools DBC, lockstep and udp_multicast real time, fault matrix",
+    make_quantizer=_make_quantizer,
+    tested="byte-exact codec, cantools DBC, lockstep and udp_multicast real time, fault matrix, "
+    "several axes (2x2 on two nodes, lockstep and real time)",
 )
