@@ -4,6 +4,7 @@ axis, both drive nodes left disabled at zero current, every axis in the log."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ from mimo_support import mimo_config, patient, steady_tracking_rms, undisturbed_
 
 import firmware_sim.axes
 from dob_hil import cli
+from dob_hil.analysis.bus_usage import clock_offset_ns
 from dob_hil.config import Config
 from dob_hil.design import build_design
 from dob_hil.errors import ConfigError
@@ -147,6 +149,12 @@ def test_the_scenario_runs_from_the_command_line(tmp_path: Path, capsys: pytest.
     # every logged command is what the controller computes from the logged feedback, per axis
     assert cli.main(["replay", str(log), "--verify"]) == 0
     assert "identical" in capsys.readouterr().out
+    # the bus load counts both nodes: a FEEDBACK and a COMMAND per node per period (analyze
+    # pairs the samples with the first COMMAND of each period, not with every COMMAND)
+    assert clock_offset_ns(data.samples, data.frames) == ("time_ns", 0)
+    assert cli.main(["analyze", str(log), "--no-plots", "--json"]) == 0
+    load = json.loads(capsys.readouterr().out)[0]["bus_load"]
+    assert 4.0 <= load["frames_per_period"] <= 4.1
 
 
 @pytest.mark.filterwarnings("ignore::dob_hil.design.robustness.DesignWarning")  # (not this test's subject)

@@ -68,7 +68,13 @@ def frame_bit_counts(frames: StructArray) -> tuple[npt.NDArray[np.int64], npt.ND
 
 
 def _offset_against(clock: npt.NDArray[np.int64], tx_frames: npt.NDArray[np.int64]) -> tuple[float, int]:
-    """(spread, offset) of the best in-order pairing of ``clock`` with the transmitted frames."""
+    """(spread, offset) of the best in-order pairing of ``clock`` with the transmitted frames.
+
+    A period may transmit several frames (one COMMAND per axis of a multi-axis drive, a SYNC
+    beside an RPDO): the frames are paired by burst, the first frame of each, a burst being
+    frames less than half a period after the previous one.
+    """
+    tx_frames = burst_starts(tx_frames, clock)
     head = min(len(clock), len(tx_frames), 1024)
     shifts = min(len(tx_frames) - head, 64) + 1
     windows = np.lib.stride_tricks.sliding_window_view(tx_frames[: head + shifts - 1], head)
@@ -80,6 +86,20 @@ def _offset_against(clock: npt.NDArray[np.int64], tx_frames: npt.NDArray[np.int6
     tight = np.flatnonzero(spread <= spread.min() + TIE_NS)
     best = int(tight[np.argmin(np.abs(p50[tight]))])
     return float(spread[best]), int(p50[best])
+
+
+def burst_starts(tx_sorted: npt.NDArray[np.int64], clock: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """The first of each burst of ``tx_sorted``: frames within half the clock's median period of
+    the previous frame belong to its burst."""
+    if len(clock) < 2 or len(tx_sorted) < 2:
+        return tx_sorted
+    half_period = int(np.median(np.diff(clock[: min(len(clock), 1024)]))) // 2
+    if half_period <= 0:
+        return tx_sorted
+    keep = np.empty(len(tx_sorted), dtype=np.bool_)
+    keep[0] = True
+    keep[1:] = np.diff(tx_sorted) >= half_period
+    return tx_sorted[keep]
 
 
 def clock_offset_ns(samples: StructArray, frames: StructArray) -> tuple[str, int] | None:
