@@ -81,7 +81,6 @@ from dob_hil.link.protocol import (
     FrameKind,
     Status,
     frame_id,
-    saturate_current_counts,
 )
 from dob_hil.link.unwrap import CountUnwrapper
 
@@ -108,6 +107,7 @@ _ENABLED: Final = int(Status.ENABLED)
 _FAULT: Final = int(Status.FAULT)
 _SATURATED: Final = int(Status.SATURATED)
 _INF: Final = math.inf
+_new_tuple: Final = tuple.__new__
 
 _FAULT_INFO: Final = {
     FaultCode.WATCHDOG: "periods without a valid command",
@@ -204,7 +204,13 @@ class DacQuantizer:
         if x <= -self._round_limit:
             code = -self._limit_code
             return (code,), (code * self._lsb_A,), True
-        code = round_half_away(x)
+        # round_half_away(x), inline (the per-period path)
+        if x >= 0.0:
+            q = int(x)
+            code = q + 1 if x - q >= 0.5 else q
+        else:
+            q = int(-x)
+            code = -(q + 1) if -x - q >= 0.5 else -q
         return (code,), (code * self._lsb_A,), False
 
 
@@ -374,36 +380,56 @@ class NativeDriveLink:
         clock_ns = self._clock_ns
         hook = self._frame_hook
         feedback_id = self._feedback_id
-        if timeout_ns > 0:
-            deadline_ns = time.monotonic_ns() + timeout_ns
-            timeout_s = timeout_ns * 1e-9
-        else:  # lockstep: read what is queued, no clock needed
-            deadline_ns, timeout_s = 0, 0.0
+        if timeout_ns <= 0:  # lockstep (and the real-time drain): what is queued, no clock needed
+            reads = 0
+            while True:
+                try:  # (inlined rather than self._recv: this is the per-period path)
+                    msg = recv(0.0)
+                except can.CanError as exc:
+                    self._rx_error(exc)  # an event; raises once the bus is clearly broken
+                    continue
+                if msg is None:
+                    return None
+                if self._rx_errors_in_row:
+                    self._rx_errors_in_row = 0
+                now_ns = clock_ns()
+                if hook is not None:
+                    hook(msg, True)
+                self.stats.rx_frames += 1
+                if msg.arbitration_id == feedback_id and not (
+                    msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
+                ):
+                    feedback = self._on_feedback(msg, now_ns)
+                else:
+                    feedback = self._dispatch(msg, now_ns)
+                if feedback is not None:
+                    return feedback
+                reads += 1
+                if reads > MAX_READS_AFTER_DEADLINE:
+                    return None
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        timeout_s = timeout_ns * 1e-9
         reads_after_deadline = 0
         while True:
             try:  # (inlined rather than self._recv: this is the per-period path)
                 msg = recv(timeout_s)
             except can.CanError as exc:
                 self._rx_error(exc)  # an event; raises once the bus is clearly broken
-                if deadline_ns:
-                    remaining_ns = deadline_ns - time.monotonic_ns()
-                    if remaining_ns <= 0:
-                        return None
-                    timeout_s = remaining_ns * 1e-9
+                remaining_ns = deadline_ns - time.monotonic_ns()
+                if remaining_ns <= 0:
+                    return None
+                timeout_s = remaining_ns * 1e-9
                 continue
             if msg is None:
                 return None
-            self._rx_errors_in_row = 0
+            if self._rx_errors_in_row:
+                self._rx_errors_in_row = 0
             now_ns = clock_ns()
             if hook is not None:
                 hook(msg, True)
             self.stats.rx_frames += 1
-            if (
-                msg.arbitration_id == feedback_id
-                and not msg.is_extended_id
-                and not msg.is_error_frame
-                and not msg.is_remote_frame
-                and not msg.is_fd
+            if msg.arbitration_id == feedback_id and not (
+                msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
             ):
                 feedback = self._on_feedback(msg, now_ns)
             else:
@@ -517,32 +543,37 @@ class NativeDriveLink:
         unwrapper = self._unwrapper
         before = unwrapper.position
         counts = unwrapper.update(raw_counts)
-        step = counts - before if before is not None else 0
-        if step > self._max_counts_step or step < -self._max_counts_step:
-            self.stats.encoder_jumps += 1
-            self._event(
-                now_ns,
-                LinkEventKind.ENCODER_JUMP,
-                f"node {self._node}: encoder step {step} counts at seq {seq} "
-                f"exceeds the plausibility bound {self._max_counts_step}",
-            )
-        enabled = bool(status & _ENABLED)
-        fault = bool(status & _FAULT)
+        if before is not None:
+            step = counts - before
+            if step > self._max_counts_step or step < -self._max_counts_step:
+                self.stats.encoder_jumps += 1
+                self._event(
+                    now_ns,
+                    LinkEventKind.ENCODER_JUMP,
+                    f"node {self._node}: encoder step {step} counts at seq {seq} "
+                    f"exceeds the plausibility bound {self._max_counts_step}",
+                )
+        enabled = status & _ENABLED != 0
+        fault = status & _FAULT != 0
         state = DriveState.FAULT if fault else DriveState.ENABLED if enabled else DriveState.DISABLED
         if state is not self._state:
             self._change_state(now_ns, state, "feedback status")
         elif self._enable_attempt_faults >= 0:
             self._attempt_report(state)
         self.stats.feedback += 1
-        return Feedback(
-            now_ns,
-            seq,
-            (raw_counts,),
-            (counts,),
-            (counts / self._counts_per_unit,),
-            enabled,
-            fault,
-            bool(status & _SATURATED),
+        # tuple.__new__ directly: Feedback(...) without NamedTuple's Python-level __new__
+        return _new_tuple(
+            Feedback,
+            (
+                now_ns,
+                seq,
+                (raw_counts,),
+                (counts,),
+                (counts / self._counts_per_unit,),
+                enabled,
+                fault,
+                status & _SATURATED != 0,
+            ),
         )
 
     def _on_fault(self, msg: can.Message, now_ns: int) -> None:
@@ -648,7 +679,13 @@ class NativeDriveLink:
                 f"COMMAND.current_counts: the native profile drives 1 axis, got {len(codes)} codes"
             )
         code = codes[0]
-        limited = saturate_current_counts(code, self._limit_code)
+        limit = self._limit_code  # saturate_current_counts, inline (the per-period path)
+        if code > limit:
+            limited = limit
+        elif code < -limit:
+            limited = -limit
+        else:
+            limited = code
         if limited != code:
             self.stats.clamped_commands += 1
         try:
@@ -661,7 +698,8 @@ class NativeDriveLink:
         return self._clock_ns()
 
     def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
-        self._check_open()
+        if self._closed:
+            self._check_open()
         # no timestamp: the interface stamps what it sends (the frame hook falls back to the
         # loop's clock where it does not)
         msg = can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=payload)

@@ -98,6 +98,7 @@ PIPE_CAPACITY_BYTES: Final = 1 << 20
 _MEDIA_TYPES: Final = {".json": "application/json", ".toml": "application/toml", ".txt": "text/plain"}
 _U32: Final = 0xFFFFFFFF
 _LOG_TIME = struct.Struct("<Q")
+_get_ident: Final = threading.get_ident
 
 
 @dataclass(frozen=True, slots=True)
@@ -426,7 +427,14 @@ class LogWriter:
             )  # fmt: skip
             raise self._diagnose("sample", self._sample_fields, values, exc) from exc
         self._seq_sample = n + 1
-        self._append(record)
+        if _get_ident() == self._owner:  # _append, inline (the per-period path)
+            batch = self._batch
+            batch += record
+            self._batch_records += 1
+            if len(batch) >= self._batch_bytes:
+                self._push()
+        else:
+            self._foreign.append(record)
 
     def frame(self, msg: can.Message, is_rx: bool) -> None:
         """One raw CAN frame, received or sent (``/dob_hil/can``, or ``/dob_hil/can_fd`` above 8 bytes).
@@ -473,7 +481,14 @@ class LogWriter:
         except struct.error as exc:
             values = (timestamp_ns, arbitration_id, direction, dlc, flags, data)
             raise self._diagnose("frame", can_fields(CAN_FD_DATA_BYTES), values, exc) from exc
-        self._append(record)
+        if _get_ident() == self._owner:  # _append, inline (the per-period path)
+            batch = self._batch
+            batch += record
+            self._batch_records += 1
+            if len(batch) >= self._batch_bytes:
+                self._push()
+        else:
+            self._foreign.append(record)
 
     def truth(
         self,
@@ -495,7 +510,14 @@ class LogWriter:
             values = (time_ns, state, disturbance_A, applied_current_A, period_index, drive_state)
             raise self._diagnose("truth", self._truth_fields, values, exc) from exc
         self._seq_truth = n + 1
-        self._append(record)
+        if _get_ident() == self._owner:  # _append, inline (the per-period path)
+            batch = self._batch
+            batch += record
+            self._batch_records += 1
+            if len(batch) >= self._batch_bytes:
+                self._push()
+        else:
+            self._foreign.append(record)
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
