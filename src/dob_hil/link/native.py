@@ -62,7 +62,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Final
+from typing import Final, NoReturn
 
 import can
 
@@ -667,7 +667,8 @@ class NativeDriveLink:
         return result
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
-        """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns().
+        """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns()
+        read as soon as the bus took the frame (the frame hook runs after it).
 
         The code is clamped to +-:attr:`limit_code` as the last step before packing (quantize
         already does that; a clamp here is counted in ``stats.clamped_commands``). The enable bit
@@ -694,8 +695,26 @@ class NativeDriveLink:
             raise ProtocolError(
                 f"COMMAND: expected integer current_counts and answers_seq, got {code!r} and {answers_seq!r}"
             ) from None
-        self._send(self._command_id, payload, "COMMAND")
-        return self._clock_ns()
+        # _send, inline, with the send time read as soon as the bus took the frame: the frame hook
+        # (logging) comes after, outside the feedback-to-command path
+        if self._closed:
+            self._check_open()
+        msg = can.Message(arbitration_id=self._command_id, is_extended_id=False, data=payload)
+        try:
+            self._bus.send(msg, self._send_timeout_s)
+        except can.CanError as exc:
+            self._send_failed(exc, self._command_id, "COMMAND")
+        sent_ns = self._clock_ns()
+        self.stats.tx_frames += 1
+        if self._frame_hook is not None:
+            self._frame_hook(msg, False)
+        return sent_ns
+
+    def _send_failed(self, exc: can.CanError, arbitration_id: int, what: str) -> NoReturn:
+        self.stats.send_failures += 1
+        text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
+        self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
+        raise DriveFault(text) from exc
 
     def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
         if self._closed:
@@ -706,10 +725,7 @@ class NativeDriveLink:
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:
-            self.stats.send_failures += 1
-            text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
-            self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
-            raise DriveFault(text) from exc
+            self._send_failed(exc, arbitration_id, what)
         self.stats.tx_frames += 1
         if self._frame_hook is not None:
             self._frame_hook(msg, False)

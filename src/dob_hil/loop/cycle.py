@@ -100,14 +100,18 @@ class ControlCycle:
         x_ref = self._ref_at(k)
         clock_ns = self._clock_ns
         position = fb.position
-        t0 = clock_ns()
-        x_hat, u_fb, u_dist, u_cmd = self._update(self.x_bar, position, x_ref)
-        codes, applied, saturated = self._quantize(u_cmd)
         x_bar = self.x_bar
-        self.x_bar = self._predict(x_hat, applied, u_dist)
+        t0 = clock_ns()
+        x_hat, u_fb, u_dist, u_cmd = self._update(x_bar, position, x_ref)
+        codes, applied, saturated = self._quantize(u_cmd)
         compute_ns = clock_ns() - t0
         seq = fb.seq
         tx_ns = self._send_command(codes, seq)
+        # the prediction for the next sample after the command is out (off the feedback-to-command
+        # path); its time counts in compute_ns as well
+        t0 = clock_ns()
+        self.x_bar = self._predict(x_hat, applied, u_dist)
+        compute_ns += clock_ns() - t0
         if self._sim_time:
             rx_ns = tx_ns = time_ns
         else:

@@ -180,13 +180,14 @@ def _frame_stamper(
     monotonic_ns = time.monotonic_ns
 
     def stamp_realtime(msg: can.Message, is_rx: bool) -> None:
-        ts = msg.timestamp
-        pending.append((round(ts * 1e9) + offset_ns if ts else monotonic_ns(), msg, is_rx))
+        # only the clock reading that cannot wait (no bus timestamp); the rest at the flush
+        pending.append((0 if msg.timestamp else monotonic_ns(), msg, is_rx))
 
     def write_pending() -> None:
         for t, msg, is_rx in pending:
             aid, dlc, data, flags = parts(msg)
-            frame_raw(clamp(t), aid, is_rx, dlc, data, flags)
+            ts = msg.timestamp
+            frame_raw(clamp(round(ts * 1e9) + offset_ns if ts else t), aid, is_rx, dlc, data, flags)
         pending.clear()
 
     loop_log.defer_frames(pending, write_pending)
