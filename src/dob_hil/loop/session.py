@@ -165,15 +165,7 @@ def _frame_stamper(
         # the drive's clock without its property chain, where the simulated drive offers it
         reader = getattr(lockstep_drive, "lockstep_clock_ns", None)
         sim_ns: Callable[[], int] = reader() if reader is not None else lambda: lockstep_drive.time_ns
-
-        def stamp_lockstep(msg: can.Message, is_rx: bool) -> None:
-            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
-                aid, dlc, data, flags = parts(msg)
-                frame_raw(sim_ns(), aid, is_rx, dlc, data, flags)
-            else:  # the per-period case, kept short: a classic data frame
-                frame_raw(sim_ns(), msg.arbitration_id, is_rx, msg.dlc, msg.data, 0)
-
-        return stamp_lockstep
+        return log.clocked_frame_hook(sim_ns)
     offset_ns = time.monotonic_ns() - time.time_ns()
     clamp = frame_clamp()  # non-decreasing: an own echo's bus time can precede the send's log time
     pending: list[tuple[int, can.Message, bool]] = []
