@@ -97,6 +97,7 @@ _ST_FAULT = int(Status.FAULT)
 _ST_FAULT_WATCHDOG = int(Status.FAULT | Status.WATCHDOG)
 
 OutgoingFrame = tuple[FrameKind, bytes]
+_new_tuple = tuple.__new__
 TruthSink = Callable[[GroundTruth], None]
 
 
@@ -399,12 +400,17 @@ class DriveCore:
             payload += _PADDING[len(payload) :]
         if not self.want_truth:
             return payload, None
-        truth = GroundTruth(  # positional: the per-period path (period_index, time_ns, state, w, i, state)
-            t // self.period_ns,
-            t,
-            plant.state,
-            self.disturbance.value_A(t * 1e-9),
-            self.path.held_A,
-            state,
+        # GroundTruth(period_index, time_ns, state, w, i, drive state) by tuple.__new__: the
+        # per-period path, without NamedTuple's Python-level __new__
+        truth = _new_tuple(
+            GroundTruth,
+            (
+                t // self.period_ns,
+                t,
+                plant.state,
+                self.disturbance.value_A(t * 1e-9),
+                self.path.held_A,
+                state,
+            ),
         )
         return payload, truth
