@@ -540,19 +540,15 @@ class NativeDriveLink:
             if ahead > 1:
                 self.stats.missed_feedback += ahead - 1
         self._last_seq = seq
-        unwrapper = self._unwrapper
-        before = unwrapper.position
-        counts = unwrapper.update(raw_counts)
-        if before is not None:
-            step = counts - before
-            if step > self._max_counts_step or step < -self._max_counts_step:
-                self.stats.encoder_jumps += 1
-                self._event(
-                    now_ns,
-                    LinkEventKind.ENCODER_JUMP,
-                    f"node {self._node}: encoder step {step} counts at seq {seq} "
-                    f"exceeds the plausibility bound {self._max_counts_step}",
-                )
+        counts, step = self._unwrapper.update_step(raw_counts)
+        if step is not None and (step > self._max_counts_step or step < -self._max_counts_step):
+            self.stats.encoder_jumps += 1
+            self._event(
+                now_ns,
+                LinkEventKind.ENCODER_JUMP,
+                f"node {self._node}: encoder step {step} counts at seq {seq} "
+                f"exceeds the plausibility bound {self._max_counts_step}",
+            )
         enabled = status & _ENABLED != 0
         fault = status & _FAULT != 0
         state = DriveState.FAULT if fault else DriveState.ENABLED if enabled else DriveState.DISABLED
