@@ -9,7 +9,9 @@ per sample) and ODrive (``paper-step-odrive``). The native stack is also timed o
 virtual bus, receives it on the other end, answers with a 3-byte frame and receives that: the two
 frames of a cycle and nothing else. Every repeat times the baseline and each stack back to back
 (same machine state); the ratios are taken per repeat. Goal (issue 16): every profile's full
-stack with logging at least as fast as the bare exchange (ratio <= 1.0).
+stack with logging at least as fast as the bare exchange (ratio <= 1.0), on wall time. Beside it,
+the loop thread's CPU time per sample (``*_cpu_ratio``: marginal CPU of the session against the
+bare exchange's CPU), which a loaded machine disturbs less: waiting for a CPU is not counted.
 
     .venv/bin/python benchmarks/bench_lockstep.py [--smoke] [--json] [--repeats N] [--samples N]
 """
@@ -31,7 +33,8 @@ from dob_hil.scenarios import scenario_path
 PROFILES = {"native": "paper-step", "cia402": "paper-step-cia402", "odrive": "paper-step-odrive"}
 
 
-def bare_exchange_us(n: int) -> float:
+def bare_exchange(n: int) -> tuple[float, float]:
+    """(wall us, CPU us of this thread) per exchange."""
     channel = f"bench-{uuid.uuid4().hex}"
     host = can.Bus(interface="virtual", channel=channel)
     drive = can.Bus(interface="virtual", channel=channel)
@@ -39,24 +42,54 @@ def bare_exchange_us(n: int) -> float:
         fb = bytes(6)
         cmd = bytes(3)
         t0 = time.perf_counter_ns()
+        c0 = time.thread_time_ns()
         for _ in range(n):
             drive.send(can.Message(arbitration_id=0x181, data=fb, is_extended_id=False))
             host.recv(0.0)
             host.send(can.Message(arbitration_id=0x201, data=cmd, is_extended_id=False))
             drive.recv(0.0)
-        return (time.perf_counter_ns() - t0) / n / 1000.0
+        cpu = time.thread_time_ns() - c0
+        return (time.perf_counter_ns() - t0) / n / 1000.0, cpu / n / 1000.0
     finally:
         host.shutdown()
         drive.shutdown()
 
 
-def full_stack_us(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str) -> tuple[float, int]:
+def bare_exchange_us(n: int) -> float:
+    return bare_exchange(n)[0]
+
+
+def _session(
+    scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str
+) -> tuple[float, int, int, int]:
+    """(wall us per sample, samples, CPU ns of this thread for the whole session, dropped records)."""
     config = load_config(scenario_path(scenario))
     path = tmp / f"lockstep-{scenario}-{bus_impl}-{tag}.mcap"
     duration_s = n_samples * config.plant.period_ns * 1e-9
+    c0 = time.thread_time_ns()
     summary = run_session(config, RunOptions(duration_s=duration_s, log_path=path, bus_impl=bus_impl))
+    cpu_ns = time.thread_time_ns() - c0
     path.unlink()
-    return summary.wall_time_s / summary.samples * 1e6, summary.log_dropped_records
+    wall_us = summary.wall_time_s / summary.samples * 1e6
+    return wall_us, summary.samples, cpu_ns, summary.log_dropped_records
+
+
+def full_stack_us(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str) -> tuple[float, int]:
+    wall_us, _, _, dropped = _session(scenario, n_samples, tmp, tag, bus_impl)
+    return wall_us, dropped
+
+
+def full_stack(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str) -> tuple[float, float, int]:
+    """(wall us per sample, marginal CPU us per sample, dropped records).
+
+    The CPU figure is this thread's CPU time of the run minus that of a run of a tenth of the
+    samples, per extra sample: the setup (design, writer process start) cancels out, and time
+    spent waiting for a CPU (the machine's other load, the writer process) is not counted.
+    """
+    short = max(1, n_samples // 10)
+    _, n_short, cpu_short, drop_short = _session(scenario, short, tmp, tag + "s", bus_impl)
+    wall_us, n_long, cpu_long, dropped = _session(scenario, n_samples, tmp, tag, bus_impl)
+    return wall_us, (cpu_long - cpu_short) / (n_long - n_short) / 1000.0, dropped + drop_short
 
 
 def main() -> None:
@@ -68,15 +101,20 @@ def main() -> None:
     n_samples = args.samples or (1_000 if args.smoke else 33_333)
     n_bare = 2_000 if args.smoke else 50_000
     bare: list[float] = []
+    bare_cpu: list[float] = []
     full: dict[str, list[float]] = {name: [] for name in PROFILES}
+    full_cpu: dict[str, list[float]] = {name: [] for name in PROFILES}
     virtual: list[float] = []
     dropped = 0
     with tempfile.TemporaryDirectory() as d:
         for i in range(repeats):  # interleaved, so all see the same machine state
-            bare.append(bare_exchange_us(n_bare))
+            wall, cpu = bare_exchange(n_bare)
+            bare.append(wall)
+            bare_cpu.append(cpu)
             for name, scenario in PROFILES.items():
-                us, drop = full_stack_us(scenario, n_samples, Path(d), str(i), "inprocess")
+                us, cpu_us, drop = full_stack(scenario, n_samples, Path(d), str(i), "inprocess")
                 full[name].append(us)
+                full_cpu[name].append(cpu_us)
                 dropped += drop
             us_v, drop_v = full_stack_us(PROFILES["native"], n_samples, Path(d), str(i), "virtual")
             virtual.append(us_v)
@@ -86,10 +124,12 @@ def main() -> None:
         "repeats": repeats,
         "samples_per_run": n_samples,
         "bare_exchange_us": {"median": bare_us, "min": min(bare), "max": max(bare)},
+        "bare_exchange_cpu_us": {"median": median(bare_cpu), "min": min(bare_cpu), "max": max(bare_cpu)},
     }
     worst = 0.0
     for name, values in full.items():
         ratios = [f / b for f, b in zip(values, bare, strict=True)]  # per repeat: same machine state
+        cpu_ratios = [f / b for f, b in zip(full_cpu[name], bare_cpu, strict=True)]
         worst = max(worst, median(ratios))
         result[f"{name}_full_stack_us_per_sample"] = {
             "median": median(values), "min": min(values), "max": max(values)
@@ -97,6 +137,12 @@ def main() -> None:
         result[f"{name}_ratio_full_over_bare"] = {
             "median": median(ratios), "min": min(ratios), "max": max(ratios)
         }  # fmt: skip
+        result[f"{name}_cpu_us_per_sample"] = median(full_cpu[name])
+        result[f"{name}_cpu_ratio"] = {
+            "median": median(cpu_ratios),
+            "min": min(cpu_ratios),
+            "max": max(cpu_ratios),
+        }
     v_ratios = [f / b for f, b in zip(virtual, bare, strict=True)]
     result["native_on_virtual_us_per_sample"] = {"median": median(virtual), "ratio": median(v_ratios)}
     result["log_dropped_records"] = dropped
