@@ -324,7 +324,13 @@ class DriveCore:
             self.time_ns = max(self.time_ns, t_ns)
             return
         try:
-            self._integrate_to(t_ns)
+            t = self.time_ns
+            path = self.path
+            if t < t_ns and path.settle(t):  # the common case: one held current over the whole span
+                self.plant.advance(t, t_ns, path.held_A)
+                self.time_ns = t_ns
+            else:
+                self._integrate_to(t_ns)
         except (OverflowError, ValueError, FloatingPointError):
             # the physics left the float range (a diverging or absurd plant): the position can no
             # longer be measured, as an encoder that lost track; the state is frozen from here
