@@ -94,10 +94,10 @@ def full_stack(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str
 
 def main() -> None:
     p = parser(__doc__ or "")
-    p.add_argument("--repeats", type=int, default=None, help="repeats (default 7; --smoke 2)")
+    p.add_argument("--repeats", type=int, default=None, help="repeats (default 7; --smoke 1)")
     p.add_argument("--samples", type=int, default=None, help="samples per run (default 33,333; smoke 1,000)")
     args = p.parse_args()
-    repeats = args.repeats or (2 if args.smoke else 7)
+    repeats = args.repeats or (1 if args.smoke else 7)
     n_samples = args.samples or (1_000 if args.smoke else 33_333)
     n_bare = 2_000 if args.smoke else 50_000
     bare: list[float] = []

@@ -380,45 +380,22 @@ class NativeDriveLink:
         clock_ns = self._clock_ns
         hook = self._frame_hook
         feedback_id = self._feedback_id
-        if timeout_ns <= 0:  # lockstep (and the real-time drain): what is queued, no clock needed
-            reads = 0
-            while True:
-                try:  # (inlined rather than self._recv: this is the per-period path)
-                    msg = recv(0.0)
-                except can.CanError as exc:
-                    self._rx_error(exc)  # an event; raises once the bus is clearly broken
-                    continue
-                if msg is None:
-                    return None
-                if self._rx_errors_in_row:
-                    self._rx_errors_in_row = 0
-                now_ns = clock_ns()
-                if hook is not None:
-                    hook(msg, True)
-                self.stats.rx_frames += 1
-                if msg.arbitration_id == feedback_id and not (
-                    msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
-                ):
-                    feedback = self._on_feedback(msg, now_ns)
-                else:
-                    feedback = self._dispatch(msg, now_ns)
-                if feedback is not None:
-                    return feedback
-                reads += 1
-                if reads > MAX_READS_AFTER_DEADLINE:
-                    return None
-        deadline_ns = time.monotonic_ns() + timeout_ns
-        timeout_s = timeout_ns * 1e-9
+        if timeout_ns > 0:
+            deadline_ns = time.monotonic_ns() + timeout_ns
+            timeout_s = timeout_ns * 1e-9
+        else:  # lockstep: read what is queued, no clock needed
+            deadline_ns, timeout_s = 0, 0.0
         reads_after_deadline = 0
         while True:
             try:  # (inlined rather than self._recv: this is the per-period path)
                 msg = recv(timeout_s)
             except can.CanError as exc:
                 self._rx_error(exc)  # an event; raises once the bus is clearly broken
-                remaining_ns = deadline_ns - time.monotonic_ns()
-                if remaining_ns <= 0:
-                    return None
-                timeout_s = remaining_ns * 1e-9
+                if deadline_ns:
+                    remaining_ns = deadline_ns - time.monotonic_ns()
+                    if remaining_ns <= 0:
+                        return None
+                    timeout_s = remaining_ns * 1e-9
                 continue
             if msg is None:
                 return None
@@ -436,7 +413,7 @@ class NativeDriveLink:
                 feedback = self._dispatch(msg, now_ns)
             if feedback is not None:
                 return feedback
-            remaining_ns = deadline_ns - time.monotonic_ns()
+            remaining_ns = deadline_ns - time.monotonic_ns() if deadline_ns else 0
             if remaining_ns > 0:
                 timeout_s = remaining_ns * 1e-9
             else:

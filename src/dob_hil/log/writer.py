@@ -533,14 +533,7 @@ class LogWriter:
         except struct.error as exc:
             values = (timestamp_ns, arbitration_id, direction, dlc, flags, data)
             raise self._diagnose("frame", can_fields(CAN_FD_DATA_BYTES), values, exc) from exc
-        if _get_ident() == self._owner:  # _append, inline (the per-period path)
-            batch = self._batch
-            batch += record
-            self._batch_records += 1
-            if len(batch) >= self._batch_bytes:
-                self._push()
-        else:
-            self._foreign.append(record)
+        self._append(record)  # (lockstep's per-period frames: clocked_frame_hook, appended inline)
 
     def truth(
         self,
@@ -562,14 +555,7 @@ class LogWriter:
             values = (time_ns, state, disturbance_A, applied_current_A, period_index, drive_state)
             raise self._diagnose("truth", self._truth_fields, values, exc) from exc
         self._seq_truth = n + 1
-        if _get_ident() == self._owner:  # _append, inline (the per-period path)
-            batch = self._batch
-            batch += record
-            self._batch_records += 1
-            if len(batch) >= self._batch_bytes:
-                self._push()
-        else:
-            self._foreign.append(record)
+        self._append(record)
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
