@@ -238,6 +238,52 @@ class DriveCore:
             return None
         return s
 
+    def lockstep_period(self, current_counts: int, seq7: int) -> bool:
+        """Lockstep's per-period path in one call: an enabling COMMAND at :attr:`time_ns` and the
+        commanded period (``on_frame`` + ``integrate_to`` + ``period_boundary(True)``, with the
+        same effects); the caller sends what is queued and takes the :meth:`sample`. Only for the
+        common case: ENABLED, no injected faults, a valid answer, no current change pending, no
+        input delay, no heartbeat due in the period; otherwise False, with nothing changed (the
+        caller takes the general path)."""
+        last = self._samples - 1
+        s = last - ((last - self._seq_origin - seq7) % COMMAND_SEQ_MODULO)
+        path = self.path
+        t = self.time_ns
+        t_end = t + self.period_ns
+        if (
+            last < 0
+            or last - s >= self.accept_window
+            or s <= self._last_accepted
+            or self.machine.state is not DriveState.ENABLED
+            or self.faults is not None
+            or self.delay_ns
+            or path.pending
+            or t_end >= self._next_heartbeat_ns
+            or not self._physics_ok
+        ):
+            return False
+        self._last_accepted = s
+        stats = self.stats
+        stats.commands_accepted += 1
+        limit = self._dac_limit  # Dac.convert, inline
+        code = limit if current_counts > limit else -limit if current_counts < -limit else current_counts
+        applied_A = code * self._dac_lsb_A
+        self.saturated = saturated = code != current_counts
+        if saturated:
+            stats.saturations += 1
+        path.held_A = applied_A  # path.schedule(t) + apply_due(t): nothing else is pending
+        try:
+            self.plant.advance(t, t_end, applied_A)
+            self.time_ns = t_end
+        except (OverflowError, ValueError, FloatingPointError):  # as integrate_to
+            self._physics_ok = False
+            self.fault(FaultCode.ENCODER, 0, self.time_ns)
+            self.time_ns = max(self.time_ns, t_end)
+        if self.machine.state is DriveState.ENABLED:  # period_boundary(True), no heartbeat due
+            self.watchdog.armed = True
+            self.watchdog.missed = 0
+        return True
+
     def _on_command(self, current_counts: int, seq7: int, enable: bool, t_ns: int) -> FrameResult:
         state = self.machine.state
         if state is DriveState.DISABLED and self.behaviour.fault_on_command_while_disabled:

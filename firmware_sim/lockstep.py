@@ -76,6 +76,12 @@ class LockstepClock:
                 data = msg.data
                 if len(data) == _COMMAND_DLC:  # DriveCore.on_frame's fast path, one call fewer
                     current_counts, tail = _COMMAND_STRUCT.unpack(data)
+                    # enabling: the command and the period in one call where it can (as _run_period)
+                    if tail & 0x80 and core.lockstep_period(current_counts, tail & 0x7F):
+                        if core._out:
+                            self._send_outgoing()
+                        self._send_sample()
+                        return n
                     result = core._on_command(current_counts, tail & 0x7F, bool(tail & 0x80), core.time_ns)
                 else:
                     result = core.on_frame(aid, data, core.time_ns)
