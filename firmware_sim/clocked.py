@@ -18,18 +18,10 @@ from typing import Generic, Literal, Protocol, TypeVar
 ClockKind = Literal["lockstep", "realtime"]
 
 
-class LockstepCore(Protocol):
-    @property
-    def time_ns(self) -> int: ...
-
-
 class LockstepClockLike(Protocol):
     def service(self) -> int: ...
 
     def advance_period(self) -> None: ...
-
-    @property
-    def core(self) -> LockstepCore: ...
 
 
 class RealtimeClockLike(Protocol):
@@ -69,8 +61,11 @@ class ClockedDrive(Generic[L, R]):
 
     def lockstep_clock_ns(self) -> Callable[[], int]:
         """Lockstep: a cheap reader of the simulated time (:attr:`time_ns` without the property
-        chain; the session's frame stamper calls it for every frame)."""
-        core = self._need_lockstep("lockstep_clock_ns").core
+        chain; the session's frame stamper calls it for every frame). A clock without a ``core``
+        holding ``time_ns`` gets a reader of the drive's own ``time_ns``."""
+        core = getattr(self._need_lockstep("lockstep_clock_ns"), "core", None)
+        if core is None or not hasattr(core, "time_ns"):
+            return lambda: int(getattr(self, "time_ns"))  # noqa: B009 (the subclass's property)
         return functools.partial(getattr, core, "time_ns")
 
     # --- lockstep ------------------------------------------------------------------------------

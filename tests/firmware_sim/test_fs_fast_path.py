@@ -4,10 +4,15 @@ the general path it replaces: on_frame + integrate_to + period_boundary(True).""
 from __future__ import annotations
 
 import random
+from collections import deque
+from typing import Any
 
 from fs_support import make_config
 
 from dob_hil.link.protocol import CommandFrame, ControlFrame, ControlRequest, encode_command, encode_control
+from dob_hil.loop.inproc_bus import InProcessBus
+from firmware_sim import SimulatedDrive
+from firmware_sim.clocked import ClockedDrive
 from firmware_sim.core import DriveCore, FrameResult
 
 PERIODS = 1500  # past 100 ms: heartbeats fall due on the way (the fast path declines those periods)
@@ -68,3 +73,35 @@ def test_lockstep_period_declines_without_changing_anything() -> None:
     assert not fast.lockstep_period(100, 0)  # not ENABLED
     assert (fast.time_ns, fast.plant.state, fast._last_accepted) == before[:2] + before[3:]
     assert fast.stats.commands_accepted == before[2]["commands_accepted"]
+
+
+class _BareClock:
+    """A lockstep clock without a ``core`` (a drive of another shape)."""
+
+    def service(self) -> int:
+        return 0
+
+    def advance_period(self) -> None:
+        pass
+
+
+class _BareDrive(ClockedDrive[_BareClock, Any]):
+    def __init__(self) -> None:
+        self._lockstep = _BareClock()
+        self.time_ns = 1234
+
+
+def test_lockstep_clock_ns_reads_the_core_or_the_drive() -> None:
+    drive = _BareDrive()
+    assert drive.lockstep_clock_ns()() == 1234
+    drive.time_ns = 5678
+    assert drive.lockstep_clock_ns()() == 5678
+    assert drive.service() == 0  # bound straight to the clock's
+    bus = InProcessBus("t", deque(), deque())
+    try:
+        native = SimulatedDrive(bus, make_config(), clock="lockstep")
+        clock_ns = native.lockstep_clock_ns()
+        native.advance_period()
+        assert clock_ns() == native.time_ns == native.config.plant.period_ns
+    finally:
+        bus.shutdown()
