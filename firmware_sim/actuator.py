@@ -46,6 +46,14 @@ class CurrentPath:
             self.held_A = self._currents_A[n - 1]
             del times[:n], self._currents_A[:n]
 
+    def settle(self, t_ns: int) -> bool:
+        """:meth:`apply_due` at ``t_ns``; True if no change is pending after it (one call for the
+        per-period path's common case)."""
+        times = self._times_ns
+        if times and times[0] <= t_ns:
+            self.apply_due(t_ns)
+        return not self._times_ns
+
     @property
     def final_A(self) -> float:
         """The current held once every change already scheduled is due."""

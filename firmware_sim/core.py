@@ -90,13 +90,14 @@ _PADDING = bytes(MAX_PADDED_LEN)
 _COMMAND_STRUCT = struct.Struct("<hB")  # protocol.COMMAND: i16 current, u8 seq7 | enable << 7
 _COMMAND_DLC = DLC[FrameKind.COMMAND]
 _FEEDBACK_STRUCT = struct.Struct("<iBB")  # protocol.FEEDBACK: i32 counts, u8 seq, u8 status
-_ST_OFF = Status(0)
-_ST_ENABLED = Status.ENABLED
-_ST_ENABLED_SATURATED = Status.ENABLED | Status.SATURATED
-_ST_FAULT = Status.FAULT
-_ST_FAULT_WATCHDOG = Status.FAULT | Status.WATCHDOG
+_ST_OFF = 0  # plain ints: struct packs them without Status.__index__
+_ST_ENABLED = int(Status.ENABLED)
+_ST_ENABLED_SATURATED = int(Status.ENABLED | Status.SATURATED)
+_ST_FAULT = int(Status.FAULT)
+_ST_FAULT_WATCHDOG = int(Status.FAULT | Status.WATCHDOG)
 
 OutgoingFrame = tuple[FrameKind, bytes]
+_new_tuple = tuple.__new__
 TruthSink = Callable[[GroundTruth], None]
 
 
@@ -163,6 +164,8 @@ class DriveCore:
         self.disturbance = disturbance
         self.plant = plant_model or PlantModel(plant, sim.substeps, self.disturbance, sim.initial_state)
         self.dac = Dac(drive.dac_lsb_A, drive.current_limit_A)
+        self._dac_limit = self.dac.limit_counts  # the per-period path clamps inline (Dac.convert)
+        self._dac_lsb_A = self.dac.lsb_A
         self.encoder = Encoder(
             drive.encoder_counts_per_unit, drive.encoder_bits, sim.noise_counts_std, sim.seed
         )
@@ -243,12 +246,60 @@ class DriveCore:
             return None
         return s
 
+    def lockstep_period(self, current_counts: int, seq7: int) -> bool:
+        """Lockstep's per-period path in one call: an enabling COMMAND at :attr:`time_ns` and the
+        commanded period (``on_frame`` + ``integrate_to`` + ``period_boundary(True)``, with the
+        same effects); the caller sends what is queued and takes the :meth:`sample`. Only for the
+        common case: ENABLED, no injected faults, a valid answer, no current change pending, no
+        input delay, no heartbeat due in the period; otherwise False, with nothing changed (the
+        caller takes the general path)."""
+        last = self._samples - 1
+        s = last - ((last - self._seq_origin - seq7) % COMMAND_SEQ_MODULO)
+        path = self.path
+        t = self.time_ns
+        t_end = t + self.period_ns
+        if (
+            last < 0
+            or last - s >= self.accept_window
+            or s <= self._last_accepted
+            or self.machine.state is not DriveState.ENABLED
+            or self.faults is not None
+            or self.delay_ns
+            or path.pending
+            or t_end >= self._next_heartbeat_ns
+            or not self._physics_ok
+        ):
+            return False
+        self._last_accepted = s
+        stats = self.stats
+        stats.commands_accepted += 1
+        limit = self._dac_limit  # Dac.convert, inline
+        code = limit if current_counts > limit else -limit if current_counts < -limit else current_counts
+        applied_A = code * self._dac_lsb_A
+        self.saturated = saturated = code != current_counts
+        if saturated:
+            stats.saturations += 1
+        path.held_A = applied_A  # path.schedule(t) + apply_due(t): nothing else is pending
+        try:
+            self.plant.advance(t, t_end, applied_A)
+            self.time_ns = t_end
+        except (OverflowError, ValueError, FloatingPointError):  # as integrate_to
+            self._physics_ok = False
+            self.fault(FaultCode.ENCODER, 0, self.time_ns)
+            self.time_ns = max(self.time_ns, t_end)
+        if self.machine.state is DriveState.ENABLED:  # period_boundary(True), no heartbeat due
+            self.watchdog.armed = True
+            self.watchdog.missed = 0
+        return True
+
     def _on_command(self, current_counts: int, seq7: int, enable: bool, t_ns: int) -> FrameResult:
         state = self.machine.state
         if state is DriveState.DISABLED and self.behaviour.fault_on_command_while_disabled:
             self.fault(FaultCode.COMMAND_WHILE_DISABLED, 0, t_ns)
-        s = self._answered_sample(seq7)
-        if s is None:
+        # _answered_sample, inline (the per-period path)
+        last = self._samples - 1
+        s = last - ((last - self._seq_origin - seq7) % COMMAND_SEQ_MODULO)
+        if last < 0 or last - s >= self.accept_window or s <= self._last_accepted:
             self.stats.commands_stale += 1
             if not enable and state is DriveState.ENABLED and not self.behaviour.stale_stop_ignored:
                 self._stop(t_ns)  # a stop is never stale (it does not feed the watchdog)
@@ -257,8 +308,17 @@ class DriveCore:
         self.stats.commands_accepted += 1
         if self.machine.state is DriveState.ENABLED:
             if enable:
-                _, applied_A, self.saturated = self.dac.convert(current_counts)
-                if self.saturated:
+                # Dac.convert, inline: clamp at the limit, code * LSB
+                limit = self._dac_limit
+                if current_counts > limit:
+                    code = limit
+                elif current_counts < -limit:
+                    code = -limit
+                else:
+                    code = current_counts
+                applied_A = code * self._dac_lsb_A
+                self.saturated = saturated = code != current_counts
+                if saturated:
                     self.stats.saturations += 1
             else:
                 self._stop(t_ns)
@@ -318,7 +378,13 @@ class DriveCore:
             self.time_ns = max(self.time_ns, t_ns)
             return
         try:
-            self._integrate_to(t_ns)
+            t = self.time_ns
+            path = self.path
+            if t < t_ns and path.settle(t):  # the common case: one held current over the whole span
+                self.plant.advance(t, t_ns, path.held_A)
+                self.time_ns = t_ns
+            else:
+                self._integrate_to(t_ns)
         except (OverflowError, ValueError, FloatingPointError):
             # the physics left the float range (a diverging or absurd plant): the position can no
             # longer be measured, as an encoder that lost track; the state is frozen from here
@@ -347,49 +413,64 @@ class DriveCore:
         """Close one period at :attr:`time_ns`: watchdog (while ENABLED) and the 10 Hz heartbeat."""
         if self.faults is not None:
             self.faults.on_period(self, self.time_ns // self.period_ns)
-        if self.machine.state is DriveState.ENABLED and self.watchdog.period_elapsed(commanded):
-            self.fault(FaultCode.WATCHDOG, self.watchdog.info, self.time_ns)
+        state = self.machine.state
+        if state is DriveState.ENABLED:
+            watchdog = self.watchdog
+            if commanded:  # CommandWatchdog.period_elapsed(True), inline (the per-period path)
+                watchdog.armed = True
+                watchdog.missed = 0
+            elif watchdog.period_elapsed(False):
+                self.fault(FaultCode.WATCHDOG, watchdog.info, self.time_ns)
+                state = self.machine.state
         if self.time_ns >= self._next_heartbeat_ns:
-            if self.machine.state is DriveState.FAULT:  # repeated, so a host started later learns it
+            if state is DriveState.FAULT:  # repeated, so a host started later learns it
                 self._out.append((FrameKind.FAULT, self._fault_payload))
-            self._out.append(self._heartbeat(self.machine.state))
+            self._out.append(self._heartbeat(state))
             while self._next_heartbeat_ns <= self.time_ns:
                 self._next_heartbeat_ns += HEARTBEAT_PERIOD_NS
 
     def sample(self) -> tuple[bytes, GroundTruth | None]:
         """Latch the encoder at :attr:`time_ns`: the FEEDBACK payload and (if wanted) the truth."""
-        state = self.machine.state
+        machine = self.machine
+        state = machine.state
+        plant = self.plant
         try:
-            counts = self.encoder.read(self.plant.position())
+            counts = self.encoder.read(plant.position())
         except (ValueError, OverflowError):
             self.fault(FaultCode.ENCODER, 0, self.time_ns)
-            state, counts = self.machine.state, 0
+            state, counts = machine.state, 0
+        t = self.time_ns
         if self.faults is not None:
-            counts = self.faults.counts(self.time_ns // self.period_ns, counts)
+            counts = self.faults.counts(t // self.period_ns, counts)
         if state is DriveState.ENABLED:
             status = _ST_ENABLED_SATURATED if self.saturated else _ST_ENABLED
         elif state is DriveState.FAULT:
-            status = _ST_FAULT_WATCHDOG if self.machine.fault_code is FaultCode.WATCHDOG else _ST_FAULT
+            status = _ST_FAULT_WATCHDOG if machine.fault_code is FaultCode.WATCHDOG else _ST_FAULT
         else:
             status = _ST_OFF
-        seq = (self._samples - self._seq_origin) % SEQ_MODULO
-        self._samples += 1
+        n = self._samples
+        seq = (n - self._seq_origin) % SEQ_MODULO
+        self._samples = n + 1
         self.stats.samples += 1
         try:  # the codec's layout packed directly (per period); the codec names a bad value
             payload = _FEEDBACK_STRUCT.pack(counts, seq, status)
         except struct.error:
-            payload = encode_feedback(FeedbackFrame(counts, seq, status))
+            payload = encode_feedback(FeedbackFrame(counts, seq, Status(status)))
         if self._pad:
             payload += _PADDING[len(payload) :]
         if not self.want_truth:
             return payload, None
-        t = self.time_ns
-        truth = GroundTruth(  # positional: the per-period path (period_index, time_ns, state, w, i, state)
-            t // self.period_ns,
-            t,
-            self.plant.state,
-            self.disturbance.value_A(t * 1e-9),
-            self.path.held_A,
-            state,
+        # GroundTruth(period_index, time_ns, state, w, i, drive state) by tuple.__new__: the
+        # per-period path, without NamedTuple's Python-level __new__
+        truth = _new_tuple(
+            GroundTruth,
+            (
+                t // self.period_ns,
+                t,
+                plant.state,
+                self.disturbance.value_A(t * 1e-9),
+                self.path.held_A,
+                state,
+            ),
         )
         return payload, truth

@@ -28,6 +28,9 @@ class Encoder:
         self.bits = bits
         self.noise_counts_std = noise_counts_std
         self._rng = random.Random(f"firmware_sim/encoder/{seed}")
+        self._span = 1 << bits  # wrap_counts, inline in read (the per-period path)
+        self._mask = self._span - 1
+        self._half = self._span >> 1
 
     def ideal_counts(self, position: float) -> int:
         """The unwrapped, noise-free count of ``position`` (round half up)."""
@@ -38,9 +41,10 @@ class Encoder:
 
         Raises ValueError for a non-finite position (the drive reports an encoder fault).
         """
-        if not math.isfinite(position):
+        if position - position != 0.0:  # NaN or +-inf (math.isfinite without the call)
             raise ValueError(f"encoder position is not finite: {position}")
         counts = math.floor(position * self.counts_per_unit + 0.5)
         if self.noise_counts_std > 0.0:
             counts += math.floor(self._rng.gauss(0.0, self.noise_counts_std) + 0.5)
-        return wrap_counts(counts, self.bits)
+        v = counts & self._mask  # wrap_counts(counts, self.bits)
+        return v - self._span if v >= self._half else v

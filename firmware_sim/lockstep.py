@@ -24,8 +24,10 @@ import can
 from dob_hil.config import Config
 from dob_hil.link.protocol import DriveState, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
-from firmware_sim.core import DriveCore, FrameResult, TruthSink
+from firmware_sim.core import _COMMAND_DLC, _COMMAND_STRUCT, DriveCore, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
+
+_COMMAND = FrameResult.COMMAND
 
 
 class LockstepClock:
@@ -43,6 +45,7 @@ class LockstepClock:
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
         self._feedback_id = FrameKind.FEEDBACK + self.core.node_id
         self._node_id = self.core.node_id
+        self._lossy = sim.loss_probability > 0.0  # FeedbackImpairment.lost() draws only then
 
     def service(self) -> int:
         """Act on the frames pending on the bus (non-blocking) until a COMMAND advances the period.
@@ -66,10 +69,29 @@ class LockstepClock:
                 return n
             n += 1
             aid = msg.arbitration_id
-            if aid not in (command_id, control_id) or msg.is_extended_id or msg.is_error_frame:
+            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                 core.stats.frames_ignored += 1
                 continue
-            if msg.is_remote_frame:
+            if aid == command_id:  # the per-period frame
+                data = msg.data
+                if len(data) == _COMMAND_DLC:  # DriveCore.on_frame's fast path, one call fewer
+                    current_counts, tail = _COMMAND_STRUCT.unpack(data)
+                    # enabling: the command and the period in one call where it can (as _run_period)
+                    if tail & 0x80 and core.lockstep_period(current_counts, tail & 0x7F):
+                        if core._out:
+                            self._send_outgoing()
+                        self._send_sample()
+                        return n
+                    result = core._on_command(current_counts, tail & 0x7F, bool(tail & 0x80), core.time_ns)
+                else:
+                    result = core.on_frame(aid, data, core.time_ns)
+                if result is _COMMAND:
+                    self._run_period(True)
+                    return n
+                if core._out:
+                    self._send_outgoing()
+                continue
+            if aid != control_id:
                 core.stats.frames_ignored += 1
                 continue
             before = core.state
@@ -95,15 +117,20 @@ class LockstepClock:
         core = self.core
         core.integrate_to(core.time_ns + core.period_ns)
         core.period_boundary(commanded)
-        self._send_outgoing()
+        if core._out:  # FAULT / HEARTBEAT frames of this period (rarely any)
+            self._send_outgoing()
         self._send_sample()
 
     def _send_sample(self) -> None:
-        payload, truth = self.core.sample()
-        if self.impairment.lost():
-            self.core.stats.feedback_lost += 1
-        elif self._send(self._feedback_id, payload):
-            self.core.stats.feedback_sent += 1
+        core = self.core
+        payload, truth = core.sample()
+        if self._lossy and self.impairment.lost():
+            core.stats.feedback_lost += 1
+        elif core.silent:
+            core.stats.frames_suppressed += 1
+        else:
+            self.bus.send(can.Message(arbitration_id=self._feedback_id, data=payload, is_extended_id=False))
+            core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)
 

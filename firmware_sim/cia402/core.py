@@ -423,7 +423,10 @@ class Cia402Core:
             counts = self.faults.counts(self.period_index, counts)
         if self._sample_t_ns is not None and t_ns > self._sample_t_ns:
             step = ((counts - self.counts + 2**31) % 2**32) - 2**31  # int32 wrap-around
-            self.velocity = max(-(2**31), min(2**31 - 1, round(step * 1e9 / (t_ns - self._sample_t_ns))))
+            v = round(
+                step * 1e9 / (t_ns - self._sample_t_ns)
+            )  # clamped to int32 (if-chain: no min/max calls)
+            self.velocity = -(2**31) if v < -(2**31) else 2**31 - 1 if v > 2**31 - 1 else v
         self._sample_t_ns = t_ns
         self.counts = counts
 
@@ -500,7 +503,10 @@ class Cia402Core:
     def _ground_truth(self, t_ns: int, held_A: float) -> GroundTruth:
         tau = None if self.origin_ns is None else t_ns - self.origin_ns
         w = 0.0 if tau is None else self.disturbance.value_A(tau * 1e-9)
-        return GroundTruth(self.period_index, t_ns, self.plant.state, w, held_A, self.drive_state)
+        # without NamedTuple's Python-level __new__ (the per-period path)
+        return tuple.__new__(
+            GroundTruth, (self.period_index, t_ns, self.plant.state, w, held_A, self.drive_state)
+        )
 
     @property
     def drive_state(self) -> DriveState:
@@ -557,7 +563,7 @@ class Cia402Core:
         if self.mode != ob.MODE_CST or self.power.controlword & CW_HALT:
             torque = 0
         limit = self.max_torque
-        clamped = max(-limit, min(limit, torque))
+        clamped = -limit if torque < -limit else limit if torque > limit else torque
         self.saturated = clamped != torque
         current_A = clamped * self.rated_current_mA * 1e-6
         assert self.origin_ns is not None

@@ -52,7 +52,8 @@ class Cia402Lockstep:
                     continue
                 aid = msg.arbitration_id
                 core.on_frame(aid, bytes(msg.data), core.time_ns)
-                self._flush()
+                if core._tpdos or core._truth is not None:  # (most frames leave nothing to send)
+                    self._flush()
                 if aid == core.sync_cob_id:
                     return n
 

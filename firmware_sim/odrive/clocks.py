@@ -113,6 +113,8 @@ class OdriveLockstep:
             self.truth_sink(truth)
 
     def _send_outgoing(self) -> None:
+        if not self.core._out:  # the common case: nothing queued (no list swap)
+            return
         for aid, payload in self.core.take_outgoing():
             self._send(aid, payload)
 

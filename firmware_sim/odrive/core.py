@@ -58,6 +58,9 @@ Outgoing = tuple[int, bytes]  # (arbitration id, payload)
 TruthSink = Callable[[GroundTruth], None]
 
 
+_CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL  # (the closed_loop property, inline on the per-period path)
+
+
 @dataclass
 class OdriveStats:
     samples: int = 0  # encoder estimates taken
@@ -133,7 +136,7 @@ class OdriveCore:
         """The state in the ground-truth log's terms."""
         if self.axis_error:
             return DriveState.FAULT
-        return DriveState.ENABLED if self.closed_loop else DriveState.DISABLED
+        return DriveState.ENABLED if self.axis_state is _CLOSED_LOOP else DriveState.DISABLED
 
     def take_outgoing(self) -> list[Outgoing]:
         out, self._out = self._out, []
@@ -165,7 +168,7 @@ class OdriveCore:
     def _on_set_axis_state(self, data: bytes, t_ns: int) -> None:
         requested = codec.decode_set_axis_state(data)
         if requested is AxisState.CLOSED_LOOP_CONTROL:
-            if not self.axis_error and not self.closed_loop:
+            if not self.axis_error and self.axis_state is not _CLOSED_LOOP:
                 self.axis_state = AxisState.CLOSED_LOOP_CONTROL
                 self._missed, self._fed = 0, False
                 self._apply(t_ns)
@@ -177,7 +180,7 @@ class OdriveCore:
 
     def _on_set_controller_mode(self, data: bytes, t_ns: int) -> None:
         self.control_mode, self.input_mode = codec.decode_set_controller_mode(data)
-        if self.closed_loop:
+        if self.axis_state is _CLOSED_LOOP:
             self._apply(t_ns)
 
     def _on_set_input_torque(self, data: bytes, t_ns: int) -> None:
@@ -186,7 +189,7 @@ class OdriveCore:
             raise ProtocolError("Set_Input_Torque: not finite")
         self.input_torque_Nm = torque
         self.stats.commands_accepted += 1
-        if self.closed_loop:
+        if self.axis_state is _CLOSED_LOOP:
             self._fed = True
             self._apply(t_ns)
 
@@ -209,7 +212,7 @@ class OdriveCore:
         self.path.schedule(t_ns, current)
 
     def _idle(self, t_ns: int) -> None:
-        if self.closed_loop:
+        if self.axis_state is _CLOSED_LOOP:
             self.path.cut(t_ns)
         self.axis_state = AxisState.IDLE
 
@@ -239,7 +242,7 @@ class OdriveCore:
         if self.faults is not None:
             self.faults.on_period(cast(Any, self), self.period_index)
             self.silent = self.faults.silent
-        if self.closed_loop:
+        if self.axis_state is _CLOSED_LOOP:
             self._missed = 0 if self._fed else self._missed + 1
             self._fed = False
             if self._missed >= self.watchdog_periods:
@@ -279,14 +282,9 @@ class OdriveCore:
     def truth(self) -> GroundTruth:
         """The ground truth at :attr:`time_ns` (never on the bus)."""
         t = self.time_ns
-        return GroundTruth(
-            t // self.period_ns,
-            t,
-            self.plant.state,
-            self.disturbance.value_A(t * 1e-9),
-            self.path.held_A,
-            self.drive_state,
-        )
+        state = (t // self.period_ns, t, self.plant.state, self.disturbance.value_A(t * 1e-9),
+                 self.path.held_A, self.drive_state)  # fmt: skip
+        return tuple.__new__(GroundTruth, state)  # without NamedTuple's Python-level __new__
 
 
 class StartAtEnable:

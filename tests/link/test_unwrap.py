@@ -87,3 +87,14 @@ def test_bad_width_is_a_config_error(bits: object) -> None:
         CountUnwrapper(bits)  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"drive\.encoder_bits"):
         wrap_counts(0, bits)  # type: ignore[arg-type]
+
+
+@given(raw=st.lists(st.integers(-(2**31), 2**31 - 1), min_size=1, max_size=50), bits=st.integers(2, 32))
+def test_update_step_is_update_and_the_step_it_made(raw: list[int], bits: int) -> None:
+    one, two = CountUnwrapper(bits), CountUnwrapper(bits)
+    for value in raw:
+        counter = wrap_counts(value, bits)
+        before = one.position
+        position = one.update(counter)
+        assert two.update_step(counter) == (position, None if before is None else position - before)
+        assert two.position == one.position

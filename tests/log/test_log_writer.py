@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 import pytest
 
@@ -15,6 +16,7 @@ from dob_hil.errors import DobHilError
 from dob_hil.log import LogLayout, LogWriteError, LogWriter, read_log
 from dob_hil.log.bench import SyntheticRun
 from dob_hil.log.check import assert_complete, check_sequences
+from dob_hil.log.schemas import CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
 
 LAYOUT = LogLayout(2, 1, 1, 2)
 GOOD = dict(
@@ -267,3 +269,36 @@ def test_dev_null_runs_without_a_writer_process_and_closes(tmp_path: Path) -> No
         log.flush()
     log.close({"exit_reason": "done"})
     assert log.stats.enqueued_records == 100 and log.stats.dropped_records == 0
+
+
+def test_clocked_frame_hook_writes_what_frame_raw_writes(tmp_path: Path) -> None:
+    """The lockstep frame hook (records built in place) and frame_raw give the same frames."""
+
+    msgs = [
+        (can.Message(arbitration_id=0x181, data=bytes([1, 2, 3, 4, 5, 6]), is_extended_id=False), True),
+        (can.Message(arbitration_id=0x201, data=b"\x10\x00\x85", is_extended_id=False), False),
+        (can.Message(arbitration_id=0x1ABCDEF, data=b"\x01", is_extended_id=True), True),  # general path
+        (can.Message(arbitration_id=0x7FF, is_remote_frame=True, dlc=8, is_extended_id=False), False),
+        (can.Message(arbitration_id=0x123, data=bytes(range(12)), is_fd=True, is_extended_id=False), True),
+        (can.Message(arbitration_id=0x0, data=b"", is_extended_id=False), True),
+    ]
+    times = iter(range(1000, 100_000, 300))
+    clock_ns = lambda: next(times)  # noqa: E731
+    with LogWriter(tmp_path / "hook.mcap", LAYOUT) as log:
+        hook = log.clocked_frame_hook(clock_ns)
+        for _ in range(3):
+            for msg, is_rx in msgs:
+                hook(msg, is_rx)
+    times = iter(range(1000, 100_000, 300))
+    with LogWriter(tmp_path / "raw.mcap", LAYOUT) as log:
+        for _ in range(3):
+            for msg, is_rx in msgs:
+                flags = (CAN_FLAG_EXTENDED if msg.is_extended_id else 0) | (CAN_FLAG_FD if msg.is_fd else 0)
+                flags |= CAN_FLAG_REMOTE if msg.is_remote_frame else 0
+                log.frame_raw(clock_ns(), msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", flags)
+    a, b = read_log(tmp_path / "hook.mcap"), read_log(tmp_path / "raw.mcap")
+    assert len(a.frames) == 15 and len(a.fd_frames) == 3
+    for name in a.frames.dtype.names or ():
+        assert np.array_equal(a.frames[name], b.frames[name]), name
+    for name in a.fd_frames.dtype.names or ():
+        assert np.array_equal(a.fd_frames[name], b.fd_frames[name]), name

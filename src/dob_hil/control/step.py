@@ -155,7 +155,7 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
     for i in range(m):
         up.append(f"    ud{i} = {dot('Kdist', Kdist, i, [f'o{j}' for j in range(n)])}")
     up.append(
-        "    return _Out("
+        "    return _new(_Out, ("
         + ", ".join(
             [
                 _tuple(xh),
@@ -164,7 +164,7 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
                 _tuple([f"fb{i} + ud{i}" for i in range(m)]),
             ]
         )
-        + ")"
+        + "))"
     )
 
     pr: list[str] = []
@@ -181,14 +181,15 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
 
     defaults = "".join(f", {k}={k}" for k in coeffs)
     source = (
-        f"def update(x_bar, y, x_ref, _Out=_Out{defaults}):\n"
+        f"def update(x_bar, y, x_ref, _Out=_Out, _new=_new{defaults}):\n"
         + "\n".join(up)
         + f"\n\n\ndef predict(x_hat, u_applied, u_dist{defaults}):\n"
         + "\n".join(pr)
         + "\n"
     )
     # The namespace holds only the coefficient floats (bound as defaults) and the result type.
-    namespace: dict[str, Any] = {"_Out": StepOutput, **coeffs}
+    # (the StepOutput is made with tuple.__new__: NamedTuple's own __new__ is a Python call)
+    namespace: dict[str, Any] = {"_Out": StepOutput, "_new": tuple.__new__, **coeffs}
     exec(compile(source, "<dob_hil.control.step generated>", "exec"), namespace)
     return StepFunctions(namespace["update"], namespace["predict"], n, m, p, source)
 

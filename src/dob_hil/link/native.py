@@ -62,7 +62,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Final
+from typing import Final, NoReturn
 
 import can
 
@@ -81,7 +81,6 @@ from dob_hil.link.protocol import (
     FrameKind,
     Status,
     frame_id,
-    saturate_current_counts,
 )
 from dob_hil.link.unwrap import CountUnwrapper
 
@@ -108,6 +107,7 @@ _ENABLED: Final = int(Status.ENABLED)
 _FAULT: Final = int(Status.FAULT)
 _SATURATED: Final = int(Status.SATURATED)
 _INF: Final = math.inf
+_new_tuple: Final = tuple.__new__
 
 _FAULT_INFO: Final = {
     FaultCode.WATCHDOG: "periods without a valid command",
@@ -204,7 +204,13 @@ class DacQuantizer:
         if x <= -self._round_limit:
             code = -self._limit_code
             return (code,), (code * self._lsb_A,), True
-        code = round_half_away(x)
+        # round_half_away(x), inline (the per-period path)
+        if x >= 0.0:
+            q = int(x)
+            code = q + 1 if x - q >= 0.5 else q
+        else:
+            q = int(-x)
+            code = -(q + 1) if -x - q >= 0.5 else -q
         return (code,), (code * self._lsb_A,), False
 
 
@@ -393,24 +399,21 @@ class NativeDriveLink:
                 continue
             if msg is None:
                 return None
-            self._rx_errors_in_row = 0
+            if self._rx_errors_in_row:
+                self._rx_errors_in_row = 0
             now_ns = clock_ns()
             if hook is not None:
                 hook(msg, True)
             self.stats.rx_frames += 1
-            if (
-                msg.arbitration_id == feedback_id
-                and not msg.is_extended_id
-                and not msg.is_error_frame
-                and not msg.is_remote_frame
-                and not msg.is_fd
+            if msg.arbitration_id == feedback_id and not (
+                msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
             ):
                 feedback = self._on_feedback(msg, now_ns)
             else:
                 feedback = self._dispatch(msg, now_ns)
             if feedback is not None:
                 return feedback
-            remaining_ns = deadline_ns - time.monotonic_ns()
+            remaining_ns = deadline_ns - time.monotonic_ns() if deadline_ns else 0
             if remaining_ns > 0:
                 timeout_s = remaining_ns * 1e-9
             else:
@@ -514,11 +517,8 @@ class NativeDriveLink:
             if ahead > 1:
                 self.stats.missed_feedback += ahead - 1
         self._last_seq = seq
-        unwrapper = self._unwrapper
-        before = unwrapper.position
-        counts = unwrapper.update(raw_counts)
-        step = counts - before if before is not None else 0
-        if step > self._max_counts_step or step < -self._max_counts_step:
+        counts, step = self._unwrapper.update_step(raw_counts)
+        if step is not None and (step > self._max_counts_step or step < -self._max_counts_step):
             self.stats.encoder_jumps += 1
             self._event(
                 now_ns,
@@ -526,23 +526,27 @@ class NativeDriveLink:
                 f"node {self._node}: encoder step {step} counts at seq {seq} "
                 f"exceeds the plausibility bound {self._max_counts_step}",
             )
-        enabled = bool(status & _ENABLED)
-        fault = bool(status & _FAULT)
+        enabled = status & _ENABLED != 0
+        fault = status & _FAULT != 0
         state = DriveState.FAULT if fault else DriveState.ENABLED if enabled else DriveState.DISABLED
         if state is not self._state:
             self._change_state(now_ns, state, "feedback status")
         elif self._enable_attempt_faults >= 0:
             self._attempt_report(state)
         self.stats.feedback += 1
-        return Feedback(
-            now_ns,
-            seq,
-            (raw_counts,),
-            (counts,),
-            (counts / self._counts_per_unit,),
-            enabled,
-            fault,
-            bool(status & _SATURATED),
+        # tuple.__new__ directly: Feedback(...) without NamedTuple's Python-level __new__
+        return _new_tuple(
+            Feedback,
+            (
+                now_ns,
+                seq,
+                (raw_counts,),
+                (counts,),
+                (counts / self._counts_per_unit,),
+                enabled,
+                fault,
+                status & _SATURATED != 0,
+            ),
         )
 
     def _on_fault(self, msg: can.Message, now_ns: int) -> None:
@@ -636,7 +640,8 @@ class NativeDriveLink:
         return result
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
-        """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns().
+        """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns()
+        read as soon as the bus took the frame (the frame hook runs after it).
 
         The code is clamped to +-:attr:`limit_code` as the last step before packing (quantize
         already does that; a clamp here is counted in ``stats.clamped_commands``). The enable bit
@@ -648,7 +653,13 @@ class NativeDriveLink:
                 f"COMMAND.current_counts: the native profile drives 1 axis, got {len(codes)} codes"
             )
         code = codes[0]
-        limited = saturate_current_counts(code, self._limit_code)
+        limit = self._limit_code  # saturate_current_counts, inline (the per-period path)
+        if code > limit:
+            limited = limit
+        elif code < -limit:
+            limited = -limit
+        else:
+            limited = code
         if limited != code:
             self.stats.clamped_commands += 1
         try:
@@ -657,21 +668,37 @@ class NativeDriveLink:
             raise ProtocolError(
                 f"COMMAND: expected integer current_counts and answers_seq, got {code!r} and {answers_seq!r}"
             ) from None
-        self._send(self._command_id, payload, "COMMAND")
-        return self._clock_ns()
+        # _send, inline, with the send time read as soon as the bus took the frame: the frame hook
+        # (logging) comes after, outside the feedback-to-command path
+        if self._closed:
+            self._check_open()
+        msg = can.Message(arbitration_id=self._command_id, is_extended_id=False, data=payload)
+        try:
+            self._bus.send(msg, self._send_timeout_s)
+        except can.CanError as exc:
+            self._send_failed(exc, self._command_id, "COMMAND")
+        sent_ns = self._clock_ns()
+        self.stats.tx_frames += 1
+        if self._frame_hook is not None:
+            self._frame_hook(msg, False)
+        return sent_ns
+
+    def _send_failed(self, exc: can.CanError, arbitration_id: int, what: str) -> NoReturn:
+        self.stats.send_failures += 1
+        text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
+        self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
+        raise DriveFault(text) from exc
 
     def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
-        self._check_open()
+        if self._closed:
+            self._check_open()
         # no timestamp: the interface stamps what it sends (the frame hook falls back to the
         # loop's clock where it does not)
         msg = can.Message(arbitration_id=arbitration_id, is_extended_id=False, data=payload)
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:
-            self.stats.send_failures += 1
-            text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
-            self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
-            raise DriveFault(text) from exc
+            self._send_failed(exc, arbitration_id, what)
         self.stats.tx_frames += 1
         if self._frame_hook is not None:
             self._frame_hook(msg, False)

@@ -80,3 +80,15 @@ class CountUnwrapper:
             self._position += ((raw_counts - last + self._half) & self._mask) - self._half
         self._last = raw_counts
         return self._position
+
+    def update_step(self, raw_counts: int) -> tuple[int, int | None]:
+        """:meth:`update` and the unwrapped step it made in one call (the per-sample path):
+        (position, position - previous position), the step None for the first sample."""
+        last = self._last
+        self._last = raw_counts
+        if last is None:
+            self._position = ((raw_counts + self._half) & self._mask) - self._half
+            return self._position, None
+        step = ((raw_counts - last + self._half) & self._mask) - self._half
+        self._position += step
+        return self._position, step

@@ -70,7 +70,10 @@ class ControlCycle:
         self._predict = step.predict
         self._ref_at = reference.at
         self._link = link
+        self._quantize = link.quantize  # pre-bound: the per-period path
+        self._send_command = link.send_command
         self._log = log
+        self._log_sample = log.sample
         self._clock_ns = clock_ns
         self.n_states = step.n_states
         self.n_inputs = step.n_inputs
@@ -95,25 +98,43 @@ class ControlCycle:
         self.consecutive_missing = 0
         self.last_feedback = fb
         x_ref = self._ref_at(k)
-        t0 = self._clock_ns()
-        out = self._update(self.x_bar, fb.position, x_ref)
-        codes, applied, saturated = self._link.quantize(out.u_cmd)
+        clock_ns = self._clock_ns
+        position = fb.position
         x_bar = self.x_bar
-        self.x_bar = self._predict(out.x_hat, applied, out.u_dist)
-        compute_ns = self._clock_ns() - t0
-        tx_ns = self._link.send_command(codes, fb.seq)
-        rx_ns = fb.rx_time_ns
+        t0 = clock_ns()
+        x_hat, u_fb, u_dist, u_cmd = self._update(x_bar, position, x_ref)
+        codes, applied, saturated = self._quantize(u_cmd)
+        compute_ns = clock_ns() - t0
+        seq = fb.seq
+        tx_ns = self._send_command(codes, seq)
+        # the prediction for the next sample after the command is out (off the feedback-to-command
+        # path); its time counts in compute_ns as well
+        t0 = clock_ns()
+        self.x_bar = self._predict(x_hat, applied, u_dist)
+        compute_ns += clock_ns() - t0
         if self._sim_time:
             rx_ns = tx_ns = time_ns
-        self._last_codes, self._last_applied, self._last_u_dist = codes, applied, out.u_dist
-        flags = self._dob_flag | (FLAG_SATURATED if saturated else 0) | (FLAG_OVERRUN if overrun else 0)
-        self._log.sample(
-            time_ns, rx_ns, tx_ns, lateness_ns, fb.counts, fb.position, x_ref, out.x_hat, x_bar,
-            out.u_fb, out.u_dist, out.u_cmd, applied, k, compute_ns, codes, fb.seq, flags,
+        else:
+            rx_ns = fb.rx_time_ns
+        self._last_codes, self._last_applied, self._last_u_dist = codes, applied, u_dist
+        flags = self._dob_flag
+        s = self.stats
+        if saturated:
+            flags |= FLAG_SATURATED
+            s.saturated += 1
+        if overrun:
+            flags |= FLAG_OVERRUN
+            s.overruns += 1
+        self._log_sample(
+            time_ns, rx_ns, tx_ns, lateness_ns, fb.counts, position, x_ref, x_hat, x_bar,
+            u_fb, u_dist, u_cmd, applied, k, compute_ns, codes, seq, flags,
         )  # fmt: skip
-        self._account(applied, saturated, overrun, compute_ns)
+        # _account, inline (the per-period path): builtins on the tuple, no generator
+        s.samples += 1
+        s.max_abs_applied_A = max(s.max_abs_applied_A, *applied, -min(applied))
+        s.compute_ns_max = max(s.compute_ns_max, compute_ns)
         if self._check is not None:
-            self._check(k, fb.position, x_ref)
+            self._check(k, position, x_ref)
 
     def on_missing(self, k: int, time_ns: int, answers_seq: int, lateness_ns: int, overrun: bool) -> None:
         """Sample ``k`` without (valid) feedback: substitute per the policy, send, log."""

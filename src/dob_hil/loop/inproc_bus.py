@@ -4,7 +4,7 @@ Lockstep runs the host and the embedded simulated drive in one thread, so a bus 
 frame from one end to the other. python-can's ``virtual`` interface deep-copies every message and
 takes a lock for it (about 30 us of a 70 us lockstep sample, mostly ``deepcopy``); this one appends
 the sender's :class:`can.Message` to the other end's queue. Frames stay python-can messages and go
-through the same codecs; both ends create a fresh message per send (``NativeDriveLink._send``,
+through the same codecs; both ends create a fresh message per send (``NativeDriveLink``,
 ``firmware_sim``), so sharing the object is safe. Not thread-safe by design: real-time runs with the
 embedded drive use ``virtual``.
 

@@ -213,6 +213,8 @@ def run_realtime(
     last_rx_ns = fb.rx_time_ns
     last_log_ns = 0  # the samples' log time never steps back
     half_period_ns = period_ns // 2
+    # below this many ns since the last instant no stall can hide periods (by_time < 128)
+    stall_check_ns = (SEQ_MODULO // 2) * period_ns
     k = 0
     while k < limits.n_samples:
         reason = stop.requested
@@ -231,17 +233,23 @@ def run_realtime(
                 continue
         if fb.fault:
             raise DriveFault(_fault_message(link, fb.seq))
-        last_rx_ns = fb.rx_time_ns
+        rx_ns = last_rx_ns = fb.rx_time_ns
         overrun = False
-        if fb.rx_time_ns - (anchor_ns + k * period_ns) > half_period_ns:
+        instant_ns = anchor_ns + k * period_ns
+        if rx_ns - instant_ns > half_period_ns:
             # read late: newer feedback may be queued (on time, none can have been sent yet, so
             # the common case costs no extra receive)
             while (newer := receive(0)) is not None:
                 fb, overrun = newer, True
+            rx_ns = fb.rx_time_ns
         # with the time count: how many periods after sample k - 1's nominal instant (on the
         # drive's clock, as tracked by the anchor) this feedback came
-        since_ns = fb.rx_time_ns - (anchor_ns + (k - 1) * period_ns)
-        delta, excess = _unsequenced_periods(_seq_delta(fb.seq, expected_seq), since_ns, period_ns)
+        since_ns = rx_ns - (instant_ns - period_ns)
+        delta = (fb.seq - expected_seq + 128) % SEQ_MODULO - 128  # _seq_delta, inline
+        if since_ns < stall_check_ns:  # fewer periods than a stall needs: _unsequenced_periods
+            excess = 0  # would give (delta, 0)
+        else:
+            delta, excess = _unsequenced_periods(delta, since_ns, period_ns)
         if excess:
             cycle.stats.unsequenced_periods += excess
             log.event(
@@ -275,12 +283,12 @@ def run_realtime(
                 expected_seq = (expected_seq + 1) % SEQ_MODULO
             if k >= limits.n_samples:
                 break
-        instant_ns = anchor_ns + k * period_ns
-        lateness_ns = fb.rx_time_ns - instant_ns
+        instant_ns = anchor_ns + k * period_ns  # (k moved on if a gap was filled)
+        lateness_ns = rx_ns - instant_ns
         if -period_ns < lateness_ns < period_ns:
             anchor_ns += lateness_ns >> 6  # track the drive's clock (first order, 64 samples)
         else:
-            anchor_ns = fb.rx_time_ns - k * period_ns  # the drive's clock jumped: re-anchor
+            anchor_ns = rx_ns - k * period_ns  # the drive's clock jumped: re-anchor
         last_log_ns = instant_ns if instant_ns > last_log_ns else last_log_ns
         cycle.on_feedback(k, last_log_ns, fb, lateness_ns, overrun)
         log.flush()

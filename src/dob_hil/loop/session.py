@@ -163,28 +163,24 @@ def _frame_stamper(
         return msg.arbitration_id, msg.dlc, msg.data or b"", flags
 
     if lockstep_drive is not None:
-
-        def stamp_lockstep(msg: can.Message, is_rx: bool) -> None:
-            if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
-                aid, dlc, data, flags = parts(msg)
-            else:  # the per-period case, kept short: a classic data frame
-                aid, dlc, data, flags = msg.arbitration_id, msg.dlc, msg.data, 0
-            frame_raw(lockstep_drive.time_ns, aid, is_rx, dlc, data, flags)
-
-        return stamp_lockstep
+        # the drive's clock without its property chain, where the simulated drive offers it
+        reader = getattr(lockstep_drive, "lockstep_clock_ns", None)
+        sim_ns: Callable[[], int] = reader() if reader is not None else lambda: lockstep_drive.time_ns
+        return log.clocked_frame_hook(sim_ns)
     offset_ns = time.monotonic_ns() - time.time_ns()
     clamp = frame_clamp()  # non-decreasing: an own echo's bus time can precede the send's log time
     pending: list[tuple[int, can.Message, bool]] = []
     monotonic_ns = time.monotonic_ns
 
     def stamp_realtime(msg: can.Message, is_rx: bool) -> None:
-        ts = msg.timestamp
-        pending.append((round(ts * 1e9) + offset_ns if ts else monotonic_ns(), msg, is_rx))
+        # only the clock reading that cannot wait (no bus timestamp); the rest at the flush
+        pending.append((0 if msg.timestamp else monotonic_ns(), msg, is_rx))
 
     def write_pending() -> None:
         for t, msg, is_rx in pending:
             aid, dlc, data, flags = parts(msg)
-            frame_raw(clamp(t), aid, is_rx, dlc, data, flags)
+            ts = msg.timestamp
+            frame_raw(clamp(round(ts * 1e9) + offset_ns if ts else t), aid, is_rx, dlc, data, flags)
         pending.clear()
 
     loop_log.defer_frames(pending, write_pending)

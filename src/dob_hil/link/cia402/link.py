@@ -663,10 +663,8 @@ class Cia402DriveLink:
             return None
         self._awaiting_tpdo = False
         state = self._note_statusword(statusword, "TPDO1", now_ns)
-        unwrapper = self._unwrapper
-        before = unwrapper.position
-        counts = unwrapper.update(raw_counts)
-        step = counts - before if before is not None else 0
+        counts, step_or_none = self._unwrapper.update_step(raw_counts)
+        step = 0 if step_or_none is None else step_or_none
         if step > self._max_counts_step or step < -self._max_counts_step:
             self.stats.encoder_jumps += 1
             self._event(now_ns, LinkEventKind.ENCODER_JUMP,
