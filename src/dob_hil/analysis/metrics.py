@@ -3,7 +3,8 @@
 Vectorised over the log's arrays. The result is a JSON-ready dictionary (floats, ints, lists,
 None for what the log cannot tell); its keys:
 
-``file``, ``scenario``, ``mode``, ``dob_enabled``, ``complete`` (closed cleanly, nothing lost),
+``file``, ``scenario``, ``mode``, ``dob_enabled``, ``complete`` (closed cleanly, nothing lost: no
+dropped or out-of-sequence sample in the window either),
 ``window_start_s``, ``samples`` (in the window), ``duration_s`` (time the window spans),
 ``tracking_error_rms`` / ``tracking_error_max``: reference output ``C x_ref`` minus the true plant
 output at the sample instants with ground truth (``tracking_error_source`` "truth"), or minus the
@@ -15,6 +16,8 @@ gain of the estimate on w (1 = full amplitude; None without truth or with w = 0)
 ``saturated_fraction``; ``overruns`` (flag bit 1); ``feedback_missing`` (bit 2, substituted);
 ``skipped_samples`` (sequence gaps the runner explained in ``feedback_lost``/``overrun_skip``
 events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log);
+``out_of_sequence_samples`` (samples whose sequence number does not exceed the one before:
+duplicated or reordered records; any makes the log incomplete, with a warning);
 ``log_dropped_records`` (the summary's count of records of any kind the writer dropped, whole run);
 ``latency_us`` (command send minus feedback receive), ``period_jitter_us``
 (|receive interval - period| between consecutive samples with feedback) and ``compute_us``
@@ -154,7 +157,8 @@ def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, 
     used = len(e[0]) if e else 0
     if used == 0:
         return None, None, source, 0
-    return _rms_of(e), max(float(np.abs(c).max()) for c in e), source, used
+    maxima = [m for m in (_max_abs(c) for c in e) if m is not None]  # non-finite left out, as by _rms_of
+    return _rms_of(e), max(maxima) if maxima else None, source, used
 
 
 def _disturbance(log: LoadedLog, sig: Signals, w: slice) -> dict[str, Any]:
@@ -263,6 +267,12 @@ class WindowFigures:
     bus: dict[str, Any] | None
     truth_samples: int
     extra: dict[str, Any] = field(default_factory=dict)  # per axis (_per_axis), timing_percentiles
+    out_of_sequence: int = 0  # samples whose seq does not exceed the previous one's
+
+
+def out_of_sequence(steps: npt.NDArray[np.int64]) -> int:
+    """How many consecutive-sample sequence steps are not increasing (duplicated or reordered)."""
+    return int(np.count_nonzero(steps <= 0))
 
 
 def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = None) -> dict[str, Any]:
@@ -292,6 +302,7 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         bus=bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
         truth_samples=int(np.count_nonzero(sig.has_truth[w])),
         extra={**_per_axis(log, sig, w), "timing_percentiles": "exact"},
+        out_of_sequence=out_of_sequence(np.diff(seq)),
     )
     return assemble_metrics(log, from_s, figures)
 
@@ -304,6 +315,11 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
     if n == 0:
         warnings.append(
             f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
+        )
+    if f.out_of_sequence:
+        warnings.append(
+            f"{f.out_of_sequence} samples out of sequence (sequence number not above the previous "
+            "sample's): duplicated or reordered log records; the dropped count may be off by as many"
         )
     rms, emax, source, used = f.tracking
     if source == "measured":
@@ -319,7 +335,7 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
         "scenario": log.scenario,
         "mode": log.mode,
         "dob_enabled": log.dob_enabled,
-        "complete": bool(log.data.complete),
+        "complete": bool(log.data.complete) and f.dropped == 0 and f.out_of_sequence == 0,
         "window_start_s": f.t_first_s if has_window else None,
         "samples": n,
         "duration_s": (
@@ -336,6 +352,7 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
         "feedback_missing": f.feedback_missing,
         "skipped_samples": f.skipped,
         "dropped_samples": f.dropped,
+        "out_of_sequence_samples": f.out_of_sequence,
         "log_dropped_records": _int_or_none(log.summary.get("dropped_records")),
         **f.timing,
         "bus_load": f.bus,

@@ -45,7 +45,7 @@ import numpy.typing as npt
 from dob_hil.analysis.bus_usage import _NOMINAL, _WORST, _offset_against, frame_classes
 from dob_hil.analysis.int_distribution import IntCounts
 from dob_hil.analysis.loaded import ANALYSIS_FIELDS, LoadedLog, SampleSummary, interpret
-from dob_hil.analysis.metrics import WindowFigures, _covered_below, assemble_metrics
+from dob_hil.analysis.metrics import WindowFigures, _covered_below, assemble_metrics, out_of_sequence
 from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
 from dob_hil.analysis.signals import encoder_quantum
 from dob_hil.analysis.truth_match import SCORE_SAMPLES, _Index
@@ -569,6 +569,7 @@ class _Accumulators:
     truth_samples: int = 0
     absent: int = 0
     skipped: int = 0
+    out_of_sequence: int = 0
     latency: IntCounts = field(default_factory=IntCounts)
     jitter: IntCounts = field(default_factory=IntCounts)
     compute: IntCounts = field(default_factory=IntCounts)
@@ -629,6 +630,7 @@ class _Accumulators:
         else:
             rx_c, fb_c, seq_c = rx, fb, seq
         steps = np.diff(seq_c)
+        self.out_of_sequence += out_of_sequence(steps)
         pair = fb_c[1:] & fb_c[:-1] & (steps == 1)
         self.jitter.add(np.abs(np.diff(rx_c) - self.period_ns)[pair])
         at = np.flatnonzero(steps > 1)
@@ -914,6 +916,7 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         bus=_bus_result(log, sv, bus, log.path) if bus is not None else None,
         truth_samples=acc.truth_samples,
         extra=extra,
+        out_of_sequence=acc.out_of_sequence,
     )
     return assemble_metrics(log, sv.from_s, figures)
 
