@@ -5,6 +5,7 @@ wrong, and never call such a log complete."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -87,3 +88,32 @@ def test_non_finite_reference_gives_the_same_maximum_on_both_paths(
     _, got = analyze_streamed(path, 0.0)
     _same(expected, got)
     assert got["tracking_error_max"] == max(got["tracking_error_max_per_output"])
+
+
+def _time_back(s: np.ndarray) -> np.ndarray:
+    out = s.copy()
+    out["time_ns"][MID] -= 10**12 if out["time_ns"][MID] > 10**12 else out["time_ns"][MID]
+    return out
+
+
+def _time_max(s: np.ndarray) -> np.ndarray:
+    out = s.copy()
+    out["time_ns"][MID] = np.iinfo(np.uint64).max
+    return out
+
+
+@pytest.mark.parametrize("damage", [_time_back, _time_max], ids=["time back to 0", "time 2**64 - 1"])
+def test_sample_time_going_back_is_warned_and_both_paths_agree(
+    runs: dict[tuple[str, bool], Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, damage: Any
+) -> None:
+    """One sample's time far off in the middle: the window still starts at the first sample at or
+    after --from (not wherever a binary search on unsorted times lands), on both paths alike."""
+    data = read_log(runs[("paper-sine", True)])
+    path = rewrite_interleaved(data, tmp_path / "time.mcap", samples=damage(data.samples))
+    monkeypatch.setattr(reader_module, "GROUP_BYTES", TINY_GROUP_BYTES)
+    intact = _in_memory(runs[("paper-sine", True)], 0.1)
+    expected = _in_memory(path, 0.1)
+    _, got = analyze_streamed(path, 0.1)
+    _same(expected, got)
+    assert got["samples"] == intact["samples"]
+    assert any("time goes back" in w for w in got["warnings"]), got["warnings"]

@@ -64,8 +64,20 @@ def distribution(values: npt.NDArray[Any], scale: float = 1.0) -> dict[str, floa
 
 
 def window_start(t_s: FloatArray, from_s: float) -> int:
-    """Index of the first sample at or after ``from_s`` (t_s ascending); len(t_s) if none."""
-    return int(np.searchsorted(t_s, from_s - 1e-12, side="left"))
+    """Index of the first sample at or after ``from_s``; len(t_s) if none. A damaged log's times
+    may not ascend: no binary search (it would land anywhere)."""
+    return first_at_or_after(t_s, from_s)
+
+
+def first_at_or_after(t_s: npt.NDArray[np.floating[Any]], from_s: float) -> int:
+    """Index of the first ``t_s`` at or after ``from_s`` (in array order); len(t_s) if none."""
+    at = np.flatnonzero(t_s >= from_s - 1e-12)
+    return int(at[0]) if len(at) else len(t_s)
+
+
+def time_steps_back(t_ns: npt.NDArray[np.int64]) -> int:
+    """How many consecutive-sample time steps go back (a damaged log's clock)."""
+    return int(np.count_nonzero(np.diff(t_ns) < 0))
 
 
 def gap_accounting(seq: npt.NDArray[np.int64], events: list[dict[str, Any]]) -> tuple[int, int]:
@@ -268,6 +280,7 @@ class WindowFigures:
     truth_samples: int
     extra: dict[str, Any] = field(default_factory=dict)  # per axis (_per_axis), timing_percentiles
     out_of_sequence: int = 0  # samples whose seq does not exceed the previous one's
+    time_back: int = 0  # samples of the whole log whose time_ns is below the previous sample's
 
 
 def out_of_sequence(steps: npt.NDArray[np.int64]) -> int:
@@ -303,6 +316,7 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         truth_samples=int(np.count_nonzero(sig.has_truth[w])),
         extra={**_per_axis(log, sig, w), "timing_percentiles": "exact"},
         out_of_sequence=out_of_sequence(np.diff(seq)),
+        time_back=time_steps_back(s["time_ns"].view(np.int64)),
     )
     return assemble_metrics(log, from_s, figures)
 
@@ -315,6 +329,11 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
     if n == 0:
         warnings.append(
             f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
+        )
+    if f.time_back:
+        warnings.append(
+            f"{f.time_back} samples' time goes back (time_ns below the previous sample's): the log's "
+            "clock is damaged; the window starts at the first sample at or after --from"
         )
     if f.out_of_sequence:
         warnings.append(

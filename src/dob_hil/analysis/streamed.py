@@ -45,7 +45,13 @@ import numpy.typing as npt
 from dob_hil.analysis.bus_usage import _NOMINAL, _WORST, _offset_against, frame_classes
 from dob_hil.analysis.int_distribution import IntCounts
 from dob_hil.analysis.loaded import ANALYSIS_FIELDS, LoadedLog, SampleSummary, interpret
-from dob_hil.analysis.metrics import WindowFigures, _covered_below, assemble_metrics, out_of_sequence
+from dob_hil.analysis.metrics import (
+    WindowFigures,
+    _covered_below,
+    assemble_metrics,
+    first_at_or_after,
+    out_of_sequence,
+)
 from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
 from dob_hil.analysis.signals import encoder_quantum
 from dob_hil.analysis.truth_match import SCORE_SAMPLES, _Index
@@ -139,6 +145,7 @@ class Survey:
     seq_min: int = 0
     seq_max: int = 0
     dob_on: int = 0
+    time_back: int = 0  # time steps that go back (metrics.time_steps_back)
     spacing: IntCounts = field(default_factory=IntCounts)
     events: list[dict[str, Any]] = field(default_factory=list)
 
@@ -158,7 +165,7 @@ class Survey:
         clocks = {name: s[name].astype(np.int64) for name in CLOCKS}
         if self.first is None:
             t_s = (t_ns - self.t0) * 1e-9
-            i = int(np.searchsorted(t_s, self.from_s - 1e-12, side="left"))
+            i = first_at_or_after(t_s, self.from_s)
             if i < len(s):
                 self.first = g0 + i
                 for name, c in clocks.items():
@@ -168,6 +175,7 @@ class Survey:
                         self.before_first[name] = self.last[name]
         positive = np.diff(np.concatenate([[self.last["time_ns"]], t_ns]) if g0 else t_ns)
         self.spacing.add(positive[positive > 0])
+        self.time_back += int(np.count_nonzero(positive < 0))
         if self.head_n < HEAD_SAMPLES:
             take = min(HEAD_SAMPLES - self.head_n, len(s))
             for name, c in clocks.items():
@@ -917,6 +925,7 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         truth_samples=acc.truth_samples,
         extra=extra,
         out_of_sequence=acc.out_of_sequence,
+        time_back=sv.time_back,
     )
     return assemble_metrics(log, sv.from_s, figures)
 
