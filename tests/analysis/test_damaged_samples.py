@@ -12,6 +12,7 @@ import pytest
 from test_streamed import TINY_GROUP_BYTES, _in_memory, _same, rewrite_interleaved
 
 import dob_hil.log.reader as reader_module
+from dob_hil import cli
 from dob_hil.analysis.streamed import analyze_streamed
 from dob_hil.log import read_log
 
@@ -117,3 +118,18 @@ def test_sample_time_going_back_is_warned_and_both_paths_agree(
     _same(expected, got)
     assert got["samples"] == intact["samples"]
     assert any("time goes back" in w for w in got["warnings"]), got["warnings"]
+
+
+@pytest.mark.parametrize("how", [["--verify"], ["--design", "paper-sine"]], ids=["verify", "design"])
+def test_replay_of_a_log_without_samples_is_one_line_with_status_2(
+    runs: dict[tuple[str, bool], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], how: list[str]
+) -> None:
+    """Nothing to re-run is bad input, not a verdict ("DIFFERENT, 0 samples differ", exit 1)."""
+    data = read_log(runs[("paper-sine", True)])
+    path = rewrite_interleaved(data, tmp_path / "empty.mcap", samples=data.samples[:0], truth=data.truth[:0])
+    rc = cli.main(["replay", str(path), *how])
+    captured = capsys.readouterr()
+    assert rc == 2, captured
+    lines = [line for line in captured.err.splitlines() if ": error:" in line]
+    assert len(lines) == 1 and "no samples" in lines[0], captured.err
+    assert "Traceback" not in captured.err
