@@ -89,6 +89,21 @@ def test_non_finite_reference_gives_the_same_maximum_on_both_paths(
     _, got = analyze_streamed(path, 0.0)
     _same(expected, got)
     assert got["tracking_error_max"] == max(got["tracking_error_max_per_output"])
+    assert any("10 samples hold non-finite values" in w for w in got["warnings"]), got["warnings"]
+
+
+def test_non_finite_values_are_one_clear_warning_on_the_command_line(
+    runs: dict[tuple[str, bool], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not numpy's "invalid value encountered in matmul" (no file, no field): one line naming both."""
+    data = read_log(runs[("paper-sine", True)])
+    samples = data.samples.copy()
+    samples["x_ref"][MID : MID + 10] = np.inf
+    path = rewrite_interleaved(data, tmp_path / "inf.mcap", samples=samples)
+    assert cli.main(["analyze", "--no-plots", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "encountered" not in err, err
+    assert f"{path}: 10 samples hold non-finite values" in err, err
 
 
 def _time_back(s: np.ndarray) -> np.ndarray:

@@ -16,8 +16,10 @@ gain of the estimate on w (1 = full amplitude; None without truth or with w = 0)
 ``saturated_fraction``; ``overruns`` (flag bit 1); ``feedback_missing`` (bit 2, substituted);
 ``skipped_samples`` (sequence gaps the runner explained in ``feedback_lost``/``overrun_skip``
 events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log);
-``out_of_sequence_samples`` (samples whose sequence number does not exceed the one before:
-duplicated or reordered records; any makes the log incomplete, with a warning);
+``non_finite_samples`` (samples of the window with NaN or inf in a field the figures use: left
+out of those figures, with a warning); ``out_of_sequence_samples`` (samples whose sequence
+number does not exceed the one before: duplicated or reordered records; any makes the log
+incomplete, with a warning);
 ``log_dropped_records`` (the summary's count of records of any kind the writer dropped, whole run);
 ``latency_us`` (command send minus feedback receive), ``period_jitter_us``
 (|receive interval - period| between consecutive samples with feedback) and ``compute_us``
@@ -40,7 +42,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -73,6 +75,22 @@ def first_at_or_after(t_s: npt.NDArray[np.floating[Any]], from_s: float) -> int:
     """Index of the first ``t_s`` at or after ``from_s`` (in array order); len(t_s) if none."""
     at = np.flatnonzero(t_s >= from_s - 1e-12)
     return int(at[0]) if len(at) else len(t_s)
+
+
+# the sample fields the figures are computed from: a row with a non-finite value in any of them is
+# left out of the figures that use it, and counted (``non_finite_samples``, a warning)
+FINITE_FIELDS: Final = ("position", "x_ref", "x_hat", "u_dist", "u_applied_a")
+
+
+def non_finite_rows(s: npt.NDArray[Any]) -> int:
+    """How many samples hold a non-finite value in one of :data:`FINITE_FIELDS`."""
+    if len(s) == 0:
+        return 0
+    bad = np.zeros(len(s), dtype=np.bool_)
+    for name in FINITE_FIELDS:
+        values = np.asarray(s[name], dtype=np.float64).reshape(len(s), -1)
+        bad |= ~np.isfinite(values).all(axis=1)
+    return int(np.count_nonzero(bad))
 
 
 def time_steps_back(t_ns: npt.NDArray[np.int64]) -> int:
@@ -281,6 +299,7 @@ class WindowFigures:
     extra: dict[str, Any] = field(default_factory=dict)  # per axis (_per_axis), timing_percentiles
     out_of_sequence: int = 0  # samples whose seq does not exceed the previous one's
     time_back: int = 0  # samples of the whole log whose time_ns is below the previous sample's
+    non_finite: int = 0  # samples of the window with a non-finite value (non_finite_rows)
 
 
 def out_of_sequence(steps: npt.NDArray[np.int64]) -> int:
@@ -317,6 +336,7 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         extra={**_per_axis(log, sig, w), "timing_percentiles": "exact"},
         out_of_sequence=out_of_sequence(np.diff(seq)),
         time_back=time_steps_back(s["time_ns"].view(np.int64)),
+        non_finite=non_finite_rows(s[w]),
     )
     return assemble_metrics(log, from_s, figures)
 
@@ -329,6 +349,11 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
     if n == 0:
         warnings.append(
             f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
+        )
+    if f.non_finite:
+        warnings.append(
+            f"{f.non_finite} samples hold non-finite values (NaN or inf in {', '.join(FINITE_FIELDS)}): "
+            "left out of the figures that use them"
         )
     if f.time_back:
         warnings.append(
@@ -372,6 +397,7 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
         "skipped_samples": f.skipped,
         "dropped_samples": f.dropped,
         "out_of_sequence_samples": f.out_of_sequence,
+        "non_finite_samples": f.non_finite,
         "log_dropped_records": _int_or_none(log.summary.get("dropped_records")),
         **f.timing,
         "bus_load": f.bus,

@@ -50,6 +50,7 @@ from dob_hil.analysis.metrics import (
     _covered_below,
     assemble_metrics,
     first_at_or_after,
+    non_finite_rows,
     out_of_sequence,
 )
 from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
@@ -578,6 +579,7 @@ class _Accumulators:
     absent: int = 0
     skipped: int = 0
     out_of_sequence: int = 0
+    non_finite: int = 0
     latency: IntCounts = field(default_factory=IntCounts)
     jitter: IntCounts = field(default_factory=IntCounts)
     compute: IntCounts = field(default_factory=IntCounts)
@@ -593,6 +595,7 @@ class _Accumulators:
             self.t_first = float(t_s[0])
         self.t_last = float(t_s[-1])
         self.n += len(s)
+        self.non_finite += non_finite_rows(s)
         p = y_ref.shape[1]
         y_meas = np.asarray(s["position"], dtype=np.float64).reshape(len(s), -1)
         self.track_truth.add([y_ref[has_truth, j] - y_true[has_truth, j] for j in range(p)])
@@ -770,7 +773,8 @@ def _metrics_pass(log: LoadedLog, sv: Survey, offset: int | None, bus: _BusPlan 
             return
         w = slice(j, None)
         t_s = np.asarray((s["time_ns"][w].view(np.int64) - sv.t0) * 1e-9, dtype=np.float64)
-        y_ref = np.asarray(s["x_ref"][w], dtype=np.float64).reshape(len(s) - j, -1) @ C.T
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows: counted, left out
+            y_ref = np.asarray(s["x_ref"][w], dtype=np.float64).reshape(len(s) - j, -1) @ C.T
         acc.add(s[w], t_s, y_ref, y_true[w], x_true[w], w_A[w], has_fb[w], has_truth[w])
 
     with open_stream(log.path, METRICS_FIELDS, events=False) as stream:
@@ -926,6 +930,7 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         extra=extra,
         out_of_sequence=acc.out_of_sequence,
         time_back=sv.time_back,
+        non_finite=acc.non_finite,
     )
     return assemble_metrics(log, sv.from_s, figures)
 
