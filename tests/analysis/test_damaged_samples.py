@@ -148,3 +148,17 @@ def test_replay_of_a_log_without_samples_is_one_line_with_status_2(
     lines = [line for line in captured.err.splitlines() if ": error:" in line]
     assert len(lines) == 1 and "no samples" in lines[0], captured.err
     assert "Traceback" not in captured.err
+
+
+def test_a_log_without_samples_says_so_on_both_paths(
+    runs: dict[tuple[str, bool], Path], tmp_path: Path
+) -> None:
+    """Not "--from 0.1 s is past the log's end": the log has no samples at all."""
+    data = read_log(runs[("paper-sine", True)])
+    path = rewrite_interleaved(data, tmp_path / "empty.mcap", samples=data.samples[:0], truth=data.truth[:0])
+    expected = _in_memory(path, 0.1)
+    _, got = analyze_streamed(path, 0.1)
+    _same(expected, got)
+    assert got["samples"] == 0
+    assert any("the log holds no samples" in w for w in got["warnings"]), got["warnings"]
+    assert not any("past the log's end" in w for w in got["warnings"]), got["warnings"]

@@ -300,6 +300,7 @@ class WindowFigures:
     out_of_sequence: int = 0  # samples whose seq does not exceed the previous one's
     time_back: int = 0  # samples of the whole log whose time_ns is below the previous sample's
     non_finite: int = 0  # samples of the window with a non-finite value (non_finite_rows)
+    log_samples: int | None = None  # samples in the whole log (None: not counted)
 
 
 def out_of_sequence(steps: npt.NDArray[np.int64]) -> int:
@@ -337,6 +338,7 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         out_of_sequence=out_of_sequence(np.diff(seq)),
         time_back=time_steps_back(s["time_ns"].view(np.int64)),
         non_finite=non_finite_rows(s[w]),
+        log_samples=len(s),
     )
     return assemble_metrics(log, from_s, figures)
 
@@ -346,7 +348,9 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
     n = f.samples
     warnings = list(log.warnings)
     notes: list[str] = []
-    if n == 0:
+    if f.log_samples == 0:
+        warnings.append("the log holds no samples: nothing to measure")
+    elif n == 0:
         warnings.append(
             f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
         )

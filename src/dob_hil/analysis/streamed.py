@@ -931,6 +931,7 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         out_of_sequence=acc.out_of_sequence,
         time_back=sv.time_back,
         non_finite=acc.non_finite,
+        log_samples=sv.n,
     )
     return assemble_metrics(log, sv.from_s, figures)
 
