@@ -535,7 +535,7 @@ def _parse_one_reference(s: _Section, base_dir: Path, plant: PlantConfig) -> Ref
             raise ConfigError(s.name("path"), f"no such CSV file: {csv_path}")
         from dob_hil.control.reference import read_reference_csv
 
-        read_reference_csv(csv_path)  # every row checked before anything runs
+        read_reference_csv(csv_path, s.name("path"))  # every row checked before anything runs
     ref = ReferenceConfig(
         kind=kind,
         position=s.get("position"),

@@ -92,3 +92,44 @@ def test_default_scalar_keys_beside_the_tables_are_accepted() -> None:
     assert len(cfg.reference.outputs) == 1
     assert cfg.reference.outputs[0].kind == "sine"
     assert cfg.reference.outputs[0].amplitude == 0.5
+
+
+CSV_OUTPUTS = '[[reference.outputs]]\nkind = "csv"\npath = "{path}"\n'
+
+BAD_CSV = [  # (case, CSV bytes): each must be named by the table that points at it
+    ("not UTF-8", b"time_s,position\n0,0\n\xff\xfe,1\n"),
+    ("empty", b""),
+    ("times that do not increase", b"time_s,position\n0,0\n1,1\n0.5,2\n"),
+    ("NaN position", b"time_s,position\n0,0\n1,nan\n"),
+    # the central difference of two rows 1e-320 s apart is inf: refused, not commanded mid-run
+    ("an infinite derived velocity", b"time_s,position\n0,0\n1e-320,1\n"),
+    ("a derived velocity beyond the value bound", b"time_s,position\n0,0\n1e-300,1\n"),
+]
+
+
+@pytest.mark.parametrize(("case", "data"), BAD_CSV, ids=[c[0] for c in BAD_CSV])
+def test_bad_csv_of_an_output_names_that_output(
+    case: str, data: bytes, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "ref.csv").write_bytes(data)
+    path = tmp_path / "bad.toml"
+    path.write_text(_with_reference(CSV_OUTPUTS.format(path="ref.csv")))
+    rc = cli.main(
+        ["run", str(path), "--duration", "0.01", "--log", str(tmp_path / "x.mcap"), "--no-progress"]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("dob-hil run: error: reference.outputs[0].path"), lines[0]
+    assert "Traceback" not in err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_bad_csv_of_the_single_reference_names_reference_path(tmp_path: Path) -> None:
+    (tmp_path / "ref.csv").write_bytes(b"time_s,position\n0,0\n1e-320,1\n")
+    text = _with_reference('[reference]\nkind = "csv"\npath = "ref.csv"\n')
+    with pytest.raises(ConfigError) as info:
+        parse_config_text(text, tmp_path / "bad.toml")
+    assert info.value.field.startswith("reference.path"), info.value.field
+    assert "velocity" in info.value.problem

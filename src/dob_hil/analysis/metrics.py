@@ -3,7 +3,8 @@
 Vectorised over the log's arrays. The result is a JSON-ready dictionary (floats, ints, lists,
 None for what the log cannot tell); its keys:
 
-``file``, ``scenario``, ``mode``, ``dob_enabled``, ``complete`` (closed cleanly, nothing lost),
+``file``, ``scenario``, ``mode``, ``dob_enabled``, ``complete`` (closed cleanly, nothing lost: no
+dropped or out-of-sequence sample in the window either),
 ``window_start_s``, ``samples`` (in the window), ``duration_s`` (time the window spans),
 ``tracking_error_rms`` / ``tracking_error_max``: reference output ``C x_ref`` minus the true plant
 output at the sample instants with ground truth (``tracking_error_source`` "truth"), or minus the
@@ -15,6 +16,10 @@ gain of the estimate on w (1 = full amplitude; None without truth or with w = 0)
 ``saturated_fraction``; ``overruns`` (flag bit 1); ``feedback_missing`` (bit 2, substituted);
 ``skipped_samples`` (sequence gaps the runner explained in ``feedback_lost``/``overrun_skip``
 events); ``dropped_samples`` (sequence gaps nobody explained: lost from the log);
+``non_finite_samples`` (samples of the window with NaN or inf in a field the figures use: left
+out of those figures, with a warning); ``out_of_sequence_samples`` (samples whose sequence
+number does not exceed the one before: duplicated or reordered records; any makes the log
+incomplete, with a warning);
 ``log_dropped_records`` (the summary's count of records of any kind the writer dropped, whole run);
 ``latency_us`` (command send minus feedback receive), ``period_jitter_us``
 (|receive interval - period| between consecutive samples with feedback) and ``compute_us``
@@ -37,7 +42,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -61,8 +66,36 @@ def distribution(values: npt.NDArray[Any], scale: float = 1.0) -> dict[str, floa
 
 
 def window_start(t_s: FloatArray, from_s: float) -> int:
-    """Index of the first sample at or after ``from_s`` (t_s ascending); len(t_s) if none."""
-    return int(np.searchsorted(t_s, from_s - 1e-12, side="left"))
+    """Index of the first sample at or after ``from_s``; len(t_s) if none. A damaged log's times
+    may not ascend: no binary search (it would land anywhere)."""
+    return first_at_or_after(t_s, from_s)
+
+
+def first_at_or_after(t_s: npt.NDArray[np.floating[Any]], from_s: float) -> int:
+    """Index of the first ``t_s`` at or after ``from_s`` (in array order); len(t_s) if none."""
+    at = np.flatnonzero(t_s >= from_s - 1e-12)
+    return int(at[0]) if len(at) else len(t_s)
+
+
+# the sample fields the figures are computed from: a row with a non-finite value in any of them is
+# left out of the figures that use it, and counted (``non_finite_samples``, a warning)
+FINITE_FIELDS: Final = ("position", "x_ref", "x_hat", "u_dist", "u_applied_a")
+
+
+def non_finite_rows(s: npt.NDArray[Any]) -> int:
+    """How many samples hold a non-finite value in one of :data:`FINITE_FIELDS`."""
+    if len(s) == 0:
+        return 0
+    bad = np.zeros(len(s), dtype=np.bool_)
+    for name in FINITE_FIELDS:
+        values = np.asarray(s[name], dtype=np.float64).reshape(len(s), -1)
+        bad |= ~np.isfinite(values).all(axis=1)
+    return int(np.count_nonzero(bad))
+
+
+def time_steps_back(t_ns: npt.NDArray[np.int64]) -> int:
+    """How many consecutive-sample time steps go back (a damaged log's clock)."""
+    return int(np.count_nonzero(np.diff(t_ns) < 0))
 
 
 def gap_accounting(seq: npt.NDArray[np.int64], events: list[dict[str, Any]]) -> tuple[int, int]:
@@ -154,7 +187,8 @@ def _tracking(sig: Signals, w: slice) -> tuple[float | None, float | None, str, 
     used = len(e[0]) if e else 0
     if used == 0:
         return None, None, source, 0
-    return _rms_of(e), max(float(np.abs(c).max()) for c in e), source, used
+    maxima = [m for m in (_max_abs(c) for c in e) if m is not None]  # non-finite left out, as by _rms_of
+    return _rms_of(e), max(maxima) if maxima else None, source, used
 
 
 def _disturbance(log: LoadedLog, sig: Signals, w: slice) -> dict[str, Any]:
@@ -263,6 +297,15 @@ class WindowFigures:
     bus: dict[str, Any] | None
     truth_samples: int
     extra: dict[str, Any] = field(default_factory=dict)  # per axis (_per_axis), timing_percentiles
+    out_of_sequence: int = 0  # samples whose seq does not exceed the previous one's
+    time_back: int = 0  # samples of the whole log whose time_ns is below the previous sample's
+    non_finite: int = 0  # samples of the window with a non-finite value (non_finite_rows)
+    log_samples: int | None = None  # samples in the whole log (None: not counted)
+
+
+def out_of_sequence(steps: npt.NDArray[np.int64]) -> int:
+    """How many consecutive-sample sequence steps are not increasing (duplicated or reordered)."""
+    return int(np.count_nonzero(steps <= 0))
 
 
 def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = None) -> dict[str, Any]:
@@ -292,6 +335,10 @@ def compute_metrics(log: LoadedLog, from_s: float, signals: Signals | None = Non
         bus=bus_load(s, log.data.frames, log.data.fd_frames, first, log.period_ns, log.bitrate_bps),
         truth_samples=int(np.count_nonzero(sig.has_truth[w])),
         extra={**_per_axis(log, sig, w), "timing_percentiles": "exact"},
+        out_of_sequence=out_of_sequence(np.diff(seq)),
+        time_back=time_steps_back(s["time_ns"].view(np.int64)),
+        non_finite=non_finite_rows(s[w]),
+        log_samples=len(s),
     )
     return assemble_metrics(log, from_s, figures)
 
@@ -301,9 +348,26 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
     n = f.samples
     warnings = list(log.warnings)
     notes: list[str] = []
-    if n == 0:
+    if f.log_samples == 0:
+        warnings.append("the log holds no samples: nothing to measure")
+    elif n == 0:
         warnings.append(
             f"no samples in the window: --from {from_s:g} s is past the log's end ({f.log_end_s:.4f} s)"
+        )
+    if f.non_finite:
+        warnings.append(
+            f"{f.non_finite} samples hold non-finite values (NaN or inf in {', '.join(FINITE_FIELDS)}): "
+            "left out of the figures that use them"
+        )
+    if f.time_back:
+        warnings.append(
+            f"{f.time_back} samples' time goes back (time_ns below the previous sample's): the log's "
+            "clock is damaged; the window starts at the first sample at or after --from"
+        )
+    if f.out_of_sequence:
+        warnings.append(
+            f"{f.out_of_sequence} samples out of sequence (sequence number not above the previous "
+            "sample's): duplicated or reordered log records; the dropped count may be off by as many"
         )
     rms, emax, source, used = f.tracking
     if source == "measured":
@@ -319,7 +383,7 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
         "scenario": log.scenario,
         "mode": log.mode,
         "dob_enabled": log.dob_enabled,
-        "complete": bool(log.data.complete),
+        "complete": bool(log.data.complete) and f.dropped == 0 and f.out_of_sequence == 0,
         "window_start_s": f.t_first_s if has_window else None,
         "samples": n,
         "duration_s": (
@@ -336,6 +400,8 @@ def assemble_metrics(log: LoadedLog, from_s: float, f: WindowFigures) -> dict[st
         "feedback_missing": f.feedback_missing,
         "skipped_samples": f.skipped,
         "dropped_samples": f.dropped,
+        "out_of_sequence_samples": f.out_of_sequence,
+        "non_finite_samples": f.non_finite,
         "log_dropped_records": _int_or_none(log.summary.get("dropped_records")),
         **f.timing,
         "bus_load": f.bus,

@@ -45,7 +45,14 @@ import numpy.typing as npt
 from dob_hil.analysis.bus_usage import _NOMINAL, _WORST, _offset_against, frame_classes
 from dob_hil.analysis.int_distribution import IntCounts
 from dob_hil.analysis.loaded import ANALYSIS_FIELDS, LoadedLog, SampleSummary, interpret
-from dob_hil.analysis.metrics import WindowFigures, _covered_below, assemble_metrics
+from dob_hil.analysis.metrics import (
+    WindowFigures,
+    _covered_below,
+    assemble_metrics,
+    first_at_or_after,
+    non_finite_rows,
+    out_of_sequence,
+)
 from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
 from dob_hil.analysis.signals import encoder_quantum
 from dob_hil.analysis.truth_match import SCORE_SAMPLES, _Index
@@ -139,6 +146,7 @@ class Survey:
     seq_min: int = 0
     seq_max: int = 0
     dob_on: int = 0
+    time_back: int = 0  # time steps that go back (metrics.time_steps_back)
     spacing: IntCounts = field(default_factory=IntCounts)
     events: list[dict[str, Any]] = field(default_factory=list)
 
@@ -158,7 +166,7 @@ class Survey:
         clocks = {name: s[name].astype(np.int64) for name in CLOCKS}
         if self.first is None:
             t_s = (t_ns - self.t0) * 1e-9
-            i = int(np.searchsorted(t_s, self.from_s - 1e-12, side="left"))
+            i = first_at_or_after(t_s, self.from_s)
             if i < len(s):
                 self.first = g0 + i
                 for name, c in clocks.items():
@@ -168,6 +176,7 @@ class Survey:
                         self.before_first[name] = self.last[name]
         positive = np.diff(np.concatenate([[self.last["time_ns"]], t_ns]) if g0 else t_ns)
         self.spacing.add(positive[positive > 0])
+        self.time_back += int(np.count_nonzero(positive < 0))
         if self.head_n < HEAD_SAMPLES:
             take = min(HEAD_SAMPLES - self.head_n, len(s))
             for name, c in clocks.items():
@@ -569,6 +578,8 @@ class _Accumulators:
     truth_samples: int = 0
     absent: int = 0
     skipped: int = 0
+    out_of_sequence: int = 0
+    non_finite: int = 0
     latency: IntCounts = field(default_factory=IntCounts)
     jitter: IntCounts = field(default_factory=IntCounts)
     compute: IntCounts = field(default_factory=IntCounts)
@@ -584,6 +595,7 @@ class _Accumulators:
             self.t_first = float(t_s[0])
         self.t_last = float(t_s[-1])
         self.n += len(s)
+        self.non_finite += non_finite_rows(s)
         p = y_ref.shape[1]
         y_meas = np.asarray(s["position"], dtype=np.float64).reshape(len(s), -1)
         self.track_truth.add([y_ref[has_truth, j] - y_true[has_truth, j] for j in range(p)])
@@ -629,6 +641,7 @@ class _Accumulators:
         else:
             rx_c, fb_c, seq_c = rx, fb, seq
         steps = np.diff(seq_c)
+        self.out_of_sequence += out_of_sequence(steps)
         pair = fb_c[1:] & fb_c[:-1] & (steps == 1)
         self.jitter.add(np.abs(np.diff(rx_c) - self.period_ns)[pair])
         at = np.flatnonzero(steps > 1)
@@ -760,7 +773,8 @@ def _metrics_pass(log: LoadedLog, sv: Survey, offset: int | None, bus: _BusPlan 
             return
         w = slice(j, None)
         t_s = np.asarray((s["time_ns"][w].view(np.int64) - sv.t0) * 1e-9, dtype=np.float64)
-        y_ref = np.asarray(s["x_ref"][w], dtype=np.float64).reshape(len(s) - j, -1) @ C.T
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite rows: counted, left out
+            y_ref = np.asarray(s["x_ref"][w], dtype=np.float64).reshape(len(s) - j, -1) @ C.T
         acc.add(s[w], t_s, y_ref, y_true[w], x_true[w], w_A[w], has_fb[w], has_truth[w])
 
     with open_stream(log.path, METRICS_FIELDS, events=False) as stream:
@@ -914,6 +928,10 @@ def streamed_metrics(log: LoadedLog, sv: Survey) -> dict[str, Any]:
         bus=_bus_result(log, sv, bus, log.path) if bus is not None else None,
         truth_samples=acc.truth_samples,
         extra=extra,
+        out_of_sequence=acc.out_of_sequence,
+        time_back=sv.time_back,
+        non_finite=acc.non_finite,
+        log_samples=sv.n,
     )
     return assemble_metrics(log, sv.from_s, figures)
 

@@ -99,6 +99,7 @@ def _rows(metrics: list[dict[str, Any]]) -> list[Row]:
         ("feedback missing", lambda m: _num(m["feedback_missing"])),
         ("skipped samples", lambda m: _num(m["skipped_samples"])),
         ("dropped samples", lambda m: _num(m["dropped_samples"])),
+        ("samples out of sequence", lambda m: _num(m.get("out_of_sequence_samples"))),
         ("log dropped records", lambda m: _num(m["log_dropped_records"])),
     ]
     for key, title in (

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dob_hil.analysis.loaded import LoadedLog, load_log
+from dob_hil.errors import LogReadError
 
 if TYPE_CHECKING:
     from dob_hil.design import Design
@@ -39,6 +40,8 @@ def _verify(log: LoadedLog, as_json: bool) -> int:
 
     # streamed and vectorised (bounded memory); the chained re-run decides anything else
     result = verify_streaming(log) or verify(load_log(log.path))
+    if result.samples == 0:
+        raise LogReadError(f"{log.path}: the log holds no samples: nothing to verify")
     if as_json:
         print(json.dumps({"mode": "verify", "log": str(log.path), **result.to_dict()}, indent=1))
     else:
@@ -63,6 +66,8 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     from dob_hil.analysis.replay import redesign
     from dob_hil.analysis.replay_plot import plot_redesign
 
+    if len(log.data.samples) == 0:
+        raise LogReadError(f"{log.path}: the log holds no samples: nothing to re-run")
     design = load_other_design(other, log.dob_enabled)
     result = redesign(log, design)
     plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")

@@ -111,7 +111,7 @@ class _CsvSignal:
         self._t = np.asarray(times)
         self._p = np.asarray(positions)
         if velocities is None:
-            self._v = np.gradient(self._p, self._t) if len(self._t) > 1 else np.zeros(1)
+            self._v = _derived_velocity(times, positions)
         else:
             self._v = np.asarray(velocities)
 
@@ -292,13 +292,20 @@ class MultiOutputReference:
 
 MAX_CSV_BYTES = 64 * 1024 * 1024  # 64 MiB: about two million rows
 MAX_CSV_VALUE = 1e6  # |position|, |velocity| in output units; times up to this many seconds
+# |velocity| derived from positions alone: above any rate a configured sine reaches (1e6 at Nyquist
+# of a 1 us period is about 3e12); beyond it the rows are simply too close in time
+MAX_DERIVED_VELOCITY = 1e13
 
 
-def read_reference_csv(path: Path) -> tuple[list[float], list[float], list[float] | None]:
-    """Read and check a reference CSV: times, positions and (if the column is there) velocities.
+def read_reference_csv(
+    path: Path, field: str = "reference.path"
+) -> tuple[list[float], list[float], list[float] | None]:
+    """Read and check a reference CSV: times, positions and (if the column is there) velocities;
+    without a velocity column the central difference the run will command is checked too.
 
-    Errors name the line and the problem, never the file's content (the path may be any file)."""
-    name = f"reference.path ({path})"
+    Errors name ``field`` (the config key that points at the file), the line and the problem, never
+    the file's content (the path may be any file)."""
+    name = f"{field} ({path})"
     try:
         size = path.stat().st_size
         if size > MAX_CSV_BYTES:
@@ -346,7 +353,31 @@ def read_reference_csv(path: Path) -> tuple[list[float], list[float], list[float
             velocities.append(values[2])
     if not times:
         raise ConfigError(name, "needs at least one data row")
+    if len(header) == 2:
+        _check_derived_velocity(name, times, positions)
     return times, positions, velocities if len(header) == 3 else None
+
+
+def _derived_velocity(times: Sequence[float], positions: Sequence[float]) -> FloatArray:
+    """The velocity column's stand-in: the central difference of the positions over the times."""
+    if len(times) < 2:
+        return np.zeros(1)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        return np.asarray(np.gradient(np.asarray(positions), np.asarray(times)), dtype=np.float64)
+
+
+def _check_derived_velocity(name: str, times: Sequence[float], positions: Sequence[float]) -> None:
+    """Rows too close in time make the central difference huge or infinite: refused here, with the
+    line, instead of commanding it mid-run."""
+    velocity = _derived_velocity(times, positions)
+    bad = np.flatnonzero(~(np.abs(velocity) <= MAX_DERIVED_VELOCITY))
+    if bad.size:
+        raise ConfigError(
+            name,
+            f"data row {int(bad[0]) + 1}: the velocity derived from the positions (central difference) is "
+            f"beyond +-{MAX_DERIVED_VELOCITY:g} (rows too close in time?); give a velocity column "
+            "or space the rows",
+        )
 
 
 def make_reference(
