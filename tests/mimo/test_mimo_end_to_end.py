@@ -4,6 +4,7 @@ axis, both drive nodes left disabled at zero current, every axis in the log."""
 
 from __future__ import annotations
 
+import gc
 import json
 from pathlib import Path
 from typing import Any
@@ -223,3 +224,39 @@ def test_lost_feedback_of_one_node_makes_the_period_missing_never_mixed(
     idx = np.array([truth_at[int(t)] for t in s["time_ns"][answered]])
     y_true = data.truth["state"][idx][:, [0, 2]]
     np.testing.assert_allclose(s["position"][answered], y_true, atol=0.5 / 10000 + 1e-12)
+
+
+WIDE_PLANT = """
+[meta]
+name = "wide"
+[plant]
+A = [[0.0, 1.0], [0.0, -20.0]]
+B = [[0.0, 0.0], [100.0, 50.0]]
+C = [[1.0, 0.0]]
+period_us = 1000.0
+[design.estimator]
+Gam1 = [[0.0], [1.0]]
+D1 = [[0.01]]
+[design.feedback]
+q = 1.0e4
+R2 = [[1.0, 0.0], [0.0, 2.0]]
+[design.dob]
+method = "dc_loop_gain"
+gain = 0.5
+[drive]
+current_limit_A = 3.0
+encoder_counts_per_unit = 10000.0
+"""
+
+
+@pytest.mark.filterwarnings("ignore::dob_hil.design.robustness.DesignWarning")  # (not this test's subject)
+def test_a_non_square_plant_is_one_line_and_leaves_no_bus_open(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    config = tmp_path / "wide.toml"
+    config.write_text(WIDE_PLANT)
+    assert cli.main(["run", str(config), "--duration", "0.05", "--log", str(tmp_path / "w.mcap")]) == 2
+    gc.collect()  # python-can warns from a bus's __del__ when it was never shut down
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert len(errors) == 1 and "plant.C" in errors[0]
+    assert not [r for r in caplog.records if "not properly shut down" in r.getMessage()]

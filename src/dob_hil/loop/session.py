@@ -320,7 +320,14 @@ def _run_with_log(
         host_bus, drive_bus = bus_pair(channel, options.bus_impl if mode == "lockstep" else "virtual")
         sink = _truth_sink(log) if mode == "lockstep" else loop_log.queue_truth
         sim_config = options.sim_config or config
-        drive = profile.make_sim(drive_bus, sim_config, "realtime" if options.realtime else "lockstep", sink)
+        try:
+            drive = profile.make_sim(
+                drive_bus, sim_config, "realtime" if options.realtime else "lockstep", sink
+            )
+        except BaseException:  # a config the simulated drive refuses: release both ends first
+            host_bus.shutdown()
+            drive_bus.shutdown()
+            raise
         if mode == "lockstep":
             sim = drive
 
