@@ -88,3 +88,25 @@ def test_not_a_log(tmp_path: Path, content: bytes, capsys: pytest.CaptureFixture
     _check(2, "", capsys.readouterr().err, "analyze")
     assert main(["analyze", str(tmp_path / "missing.mcap")]) == 2
     _check(2, "", capsys.readouterr().err, "analyze")
+
+
+def test_a_log_cut_before_its_first_sample_chunk_is_one_line(
+    runs: dict[tuple[str, bool], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Cut inside the first chunk that holds samples: no samples are left, and replay's one line
+    says why (the truncation) instead of warnings followed by an error."""
+    blob = runs[("paper-step", False)].read_bytes()
+    path = tmp_path / "cut.mcap"
+    one_line_refusals = 0
+    for size in range(2_000, min(len(blob), 60_000), 2_000):
+        path.write_bytes(blob[:size])
+        for argv, command in (
+            (["replay", str(path), "--verify"], "replay"),
+            (["replay", str(path), "--design", "paper-step"], "replay"),
+        ):
+            rc = main(argv)
+            captured = capsys.readouterr()
+            _check(rc, captured.out, captured.err, command)
+            if rc == 2 and "no samples (" in captured.err and "truncated" in captured.err:
+                one_line_refusals += 1
+    assert one_line_refusals > 0  # the case was reached

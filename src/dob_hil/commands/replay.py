@@ -34,6 +34,12 @@ def _warn(log: LoadedLog) -> None:
         print(f"dob-hil replay: warning: {log.path}: {warning}", file=sys.stderr)
 
 
+def _no_samples(log: LoadedLog, what: str) -> LogReadError:
+    """The one line for a log without samples: its warnings (a truncation, say) in the line."""
+    why = f" ({'; '.join(log.warnings)})" if log.warnings else ""
+    return LogReadError(f"{log.path}: the log holds no samples{why}: nothing to {what}")
+
+
 def _verify(log: LoadedLog, as_json: bool) -> int:
     from dob_hil.analysis.replay import verify
     from dob_hil.analysis.verify_fast import verify_streaming
@@ -41,7 +47,8 @@ def _verify(log: LoadedLog, as_json: bool) -> int:
     # streamed and vectorised (bounded memory); the chained re-run decides anything else
     result = verify_streaming(log) or verify(load_log(log.path))
     if result.samples == 0:
-        raise LogReadError(f"{log.path}: the log holds no samples: nothing to verify")
+        raise _no_samples(log, "verify")
+    _warn(log)
     if as_json:
         print(json.dumps({"mode": "verify", "log": str(log.path), **result.to_dict()}, indent=1))
     else:
@@ -67,7 +74,8 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     from dob_hil.analysis.replay_plot import plot_redesign
 
     if len(log.data.samples) == 0:
-        raise LogReadError(f"{log.path}: the log holds no samples: nothing to re-run")
+        raise _no_samples(log, "re-run")
+    _warn(log)
     design = load_other_design(other, log.dob_enabled)
     result = redesign(log, design)
     plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")
@@ -208,12 +216,9 @@ def main(args: argparse.Namespace) -> int:
         from dob_hil.log.schemas import TOPIC_EVENT
 
         log = load_log(Path(args.log), topics=[TOPIC_EVENT])
-        _warn(log)
         return _verify(log, args.json)
     log = load_log(Path(args.log))
-    _warn(log)
-    if args.verify:
-        return _verify(log, args.json)
     if args.design:
         return _design(log, args.design, args.json)
+    _warn(log)
     return _to_bus(log, args)
