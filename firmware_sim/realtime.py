@@ -45,13 +45,11 @@ from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.clocked import CoreReadout
 from firmware_sim.core import DriveCore, DriveStats, FrameResult, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
+from firmware_sim.threads import DriveThreads, yield_cpu
 
 RECV_POLL_S = 0.05  # the receive thread notices stop() within this
-MAX_SLEEP_S = 0.05  # the timer thread notices stop() within this
 TIMESTAMP_PLAUSIBLE_NS = 50_000_000  # bus timestamps further than this from now are not trusted
 MAX_CONSECUTIVE_RX_ERRORS = 1000  # bus.recv raising this often in a row: the bus is broken
-JOIN_TIMEOUT_S = 5.0  # stop() waits this long for each thread (they are daemons)
-_yield = getattr(os, "sched_yield", lambda: time.sleep(0))
 
 
 def _realtime_policy() -> bool:
@@ -76,7 +74,7 @@ def _set_timer_slack_1ns() -> None:
 Outgoing = list[tuple[int, bytes]]  # (arbitration id, payload)
 
 
-class ThreadedDriveClock:
+class ThreadedDriveClock(DriveThreads):
     """The two threads of a real-time simulated drive, around a firmware core the subclass owns.
 
     Subclasses set ``_stats`` (the counters the clock updates), ``_rx_ids`` (the ids the firmware
@@ -94,20 +92,15 @@ class ThreadedDriveClock:
     def __init__(
         self, bus: can.BusABC, config: Config, truth_sink: Callable[[Any], None] | None, *, spin_ns: int
     ) -> None:
+        super().__init__(spin_ns=spin_ns)
         self.bus = bus
         self.truth_sink = truth_sink
-        self.spin_ns = spin_ns
         self.period_ns = config.plant.period_ns
         sim = config.sim
         self.impairment = FeedbackImpairment(sim.latency_us, sim.jitter_us, sim.loss_probability, sim.seed)
         self._lock = threading.Lock()  # guards the core
         self._send_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        self._error: BaseException | None = None
         self._commanded = False  # a valid command since the last sample
-        self._t0_ns = 0
-        self._started = False
 
     # --- read-out ------------------------------------------------------------------------------
     def snapshot(self) -> tuple[DriveState, int, tuple[float, ...], int, DriveStats]:
@@ -128,60 +121,9 @@ class ThreadedDriveClock:
     def _silent(self) -> bool:
         raise NotImplementedError
 
-    # --- life cycle ----------------------------------------------------------------------------
-    def start(self) -> None:
-        if self._started:
-            raise RuntimeError("the real-time drive was already started")
-        self._started = True
-        self._t0_ns = time.monotonic_ns()
-        for name, target in (("firmware_sim-timer", self._timer_loop), ("firmware_sim-rx", self._rx_loop)):
-            t = threading.Thread(target=self._guarded, args=(target,), name=name, daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def stop(self) -> None:
-        """Stop both threads (safe to call twice); re-raise an exception one of them hit."""
-        self._stop.set()
-        for t in self._threads:
-            if t is not threading.current_thread():
-                t.join(JOIN_TIMEOUT_S)  # bounded: a stop always returns (the threads are daemons)
-        self.check()
-
-    def check(self) -> None:
-        """Re-raise, in the caller's thread, the exception a drive thread stopped on (if any)."""
-        if self._error is not None:
-            raise self._error
-
-    @property
-    def running(self) -> bool:
-        return self._started and not self._stop.is_set()
-
-    def _guarded(self, target: Callable[[], None]) -> None:
-        try:
-            target()
-        except BaseException as exc:  # surfaced by check()/stop()
-            if self._error is None:
-                self._error = exc
-            self._stop.set()
-
     # --- threads -------------------------------------------------------------------------------
-    def _wait_until(self, deadline_ns: int) -> bool:
-        """Sleep (then spin, yielding, the last ``spin_ns``) until ``deadline_ns``; False if it had
-        already passed (nothing waited)."""
-        spin = self.spin_ns
-        waited = False
-        while not self._stop.is_set():
-            remaining = deadline_ns - time.monotonic_ns()
-            if remaining <= 0:
-                return waited
-            waited = True
-            if remaining > spin:
-                time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
-            else:
-                while time.monotonic_ns() < deadline_ns and not self._stop.is_set():
-                    _yield()  # never starve a thread of the same priority, nor hold the GIL
-                return True
-        return waited
+    def _thread_targets(self) -> tuple[tuple[str, Callable[[], None]], ...]:
+        return (("firmware_sim-timer", self._timer_loop), ("firmware_sim-rx", self._rx_loop))
 
     def _timer_loop(self) -> None:
         _set_timer_slack_1ns()
@@ -197,7 +139,7 @@ class ThreadedDriveClock:
                 _, aid, payload = outbox.popleft()
                 self._send(aid, payload)
             if not self._wait_until(deadline) and realtime_policy:
-                _yield()  # late under SCHED_FIFO: still let a thread of the same priority run
+                yield_cpu()  # late under SCHED_FIFO: still let a thread of the same priority run
             if self._stop.is_set():
                 return
             with self._lock:

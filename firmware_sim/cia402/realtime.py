@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import can
 
 from dob_hil.config import Config
 from firmware_sim.cia402.core import Cia402Core, TruthSink
 from firmware_sim.impairments import FeedbackImpairment
+from firmware_sim.threads import DriveThreads
 
 RECV_POLL_S = 0.05  # the thread notices stop() within this
 # bus timestamps further than this from now are not trusted (another clock); frames that waited in
@@ -44,48 +46,22 @@ def arrival_ns(msg: can.Message, now_mono_ns: int) -> int:
     return now_mono_ns
 
 
-class Cia402Realtime:
+class Cia402Realtime(DriveThreads):
     def __init__(self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None) -> None:
+        super().__init__()
         self.bus = bus
         self.core = Cia402Core(bus, config, lockstep=False, want_truth=truth_sink is not None)
         self.truth_sink = truth_sink
         sim = config.sim
         self.impairment = FeedbackImpairment(sim.latency_us, sim.jitter_us, sim.loss_probability, sim.seed)
         self.lock = threading.Lock()  # guards the core against the read-out from other threads
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-        self._t0_ns = 0
 
-    def start(self) -> None:
-        if self._thread is not None:
-            raise RuntimeError("the real-time drive was already started")
-        self._t0_ns = time.monotonic_ns()
+    def _on_start(self) -> None:
         with self.lock:
             self.core.power_on()
-        self._thread = threading.Thread(target=self._guarded, name="firmware_sim-cia402", daemon=True)
-        self._thread.start()
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join()
-        self.check()
-
-    def check(self) -> None:
-        if self._error is not None:
-            raise self._error
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and not self._stop.is_set()
-
-    def _guarded(self) -> None:
-        try:
-            self._loop()
-        except BaseException as exc:  # surfaced by check()/stop()
-            self._error = exc
-            self._stop.set()
+    def _thread_targets(self) -> tuple[tuple[str, Callable[[], None]], ...]:
+        return (("firmware_sim-cia402", self._loop),)
 
     def _loop(self) -> None:
         core, t0, recv = self.core, self._t0_ns, self.bus.recv

@@ -33,9 +33,9 @@ from dob_hil.config import Config
 from dob_hil.link.odrive.codec import CmdId
 from firmware_sim.impairments import FeedbackImpairment
 from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
+from firmware_sim.threads import DriveThreads
 
 RECV_POLL_S = 0.05
-MAX_SLEEP_S = 0.05
 
 
 class OdriveLockstep:
@@ -130,74 +130,26 @@ class OdriveLockstep:
         return True
 
 
-class OdriveRealtime:
+class OdriveRealtime(DriveThreads):
     def __init__(
         self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None, *, spin_ns: int = 0
     ) -> None:
+        super().__init__(spin_ns=spin_ns)
         self.bus = bus
         self.core = OdriveCore(config, want_truth=truth_sink is not None)
         self.truth_sink = truth_sink
-        self.spin_ns = spin_ns
         sim = config.sim
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        self._error: BaseException | None = None
-        self._t0_ns = 0
-        self._started = False
 
-    def start(self) -> None:
-        if self._started:
-            raise RuntimeError("the real-time drive was already started")
-        self._started = True
-        self._t0_ns = time.monotonic_ns()
-        for name, target in (("odrive-timer", self._timer_loop), ("odrive-rx", self._rx_loop)):
-            t = threading.Thread(target=self._guarded, args=(target,), name=name, daemon=True)
-            self._threads.append(t)
-            t.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            if t is not threading.current_thread():
-                t.join()
-        self.check()
-
-    def check(self) -> None:
-        if self._error is not None:
-            raise self._error
-
-    @property
-    def running(self) -> bool:
-        return self._started and not self._stop.is_set()
+    def _thread_targets(self) -> tuple[tuple[str, Callable[[], None]], ...]:
+        return (("odrive-timer", self._timer_loop), ("odrive-rx", self._rx_loop))
 
     def snapshot(self) -> tuple[bool, int, tuple[float, ...], int, OdriveStats]:
         with self._lock:
             c = self.core
             return c.closed_loop, c.period_index, c.plant.state, c.time_ns, OdriveStats(**vars(c.stats))
-
-    def _guarded(self, target: Callable[[], None]) -> None:
-        try:
-            target()
-        except BaseException as exc:
-            if self._error is None:
-                self._error = exc
-            self._stop.set()
-
-    def _wait_until(self, deadline_ns: int) -> None:
-        spin = self.spin_ns
-        while not self._stop.is_set():
-            remaining = deadline_ns - time.monotonic_ns()
-            if remaining <= 0:
-                return
-            if remaining > spin:
-                time.sleep(min((remaining - spin) * 1e-9, MAX_SLEEP_S))
-            else:
-                while time.monotonic_ns() < deadline_ns:
-                    pass
-                return
 
     def _timer_loop(self) -> None:
         core, period_ns, t0 = self.core, self.core.period_ns, self._t0_ns
