@@ -70,6 +70,7 @@ from dob_hil.config import DriveConfig
 from dob_hil.errors import ConfigError, DriveFault, ProtocolError
 from dob_hil.link import protocol
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
+from dob_hil.link.closing import ClosingLink
 from dob_hil.link.protocol import (
     DLC,
     MAX_PADDED_LEN,
@@ -214,7 +215,7 @@ class DacQuantizer:
         return (code,), (code * self._lsb_A,), False
 
 
-class NativeDriveLink:
+class NativeDriveLink(ClosingLink):
     """One drive of the native protocol on a python-can bus. See the module docstring."""
 
     n_axes: Final = N_AXES
@@ -910,48 +911,6 @@ class NativeDriveLink:
             self._consume(msg)
         self._pending_feedback = None
 
-    def _stop_step(self, what: str, step: Callable[[], None], raise_errors: bool = False) -> bool:
-        """Run one step of the stop sequence; True if it succeeded."""
-        try:
-            step()
-            return True
-        except DriveFault:
-            if raise_errors:
-                raise
-            return False  # _send reported SEND_FAILED already (or the bus is broken)
-        except Exception as exc:
-            if raise_errors:
-                raise
-            try:
-                self._event(
-                    self._clock_ns(),
-                    LinkEventKind.SEND_FAILED,
-                    f"node {self._node}: safe_stop: {what} failed: {exc!r}",
-                )
-            except Exception:
-                _log.exception("safe_stop of node %d: %s failed and event_hook raised", self._node, what)
-            return False
-
-    def close(self) -> None:
-        """safe_stop() once, then shut the bus down if this link owns it. Safe to call twice."""
-        if self._closed:
-            return
-        try:
-            self.safe_stop()
-        finally:
-            self._closed = True
-            if self._owns_bus:
-                try:
-                    self._bus.shutdown()
-                except Exception:
-                    _log.exception("shutting down the CAN bus of node %d failed", self._node)
-
-    def __enter__(self) -> NativeDriveLink:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
     # --- helpers -----------------------------------------------------------------------------------
     def _consume(self, msg: can.Message) -> None:
         now_ns = self._clock_ns()
@@ -986,10 +945,6 @@ class NativeDriveLink:
             self._enable_attempt_faults = -1
             return True
         return False
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DriveFault(f"node {self._node}: the drive link is closed")
 
 
 def round_half_away(x: float) -> int:

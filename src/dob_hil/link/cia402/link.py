@@ -62,6 +62,7 @@ from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEve
 from dob_hil.link.cia402 import codec
 from dob_hil.link.cia402.codec import Command, Emcy, NmtCommand, NmtState, PowerState
 from dob_hil.link.cia402.options import Cia402Options, options_of
+from dob_hil.link.closing import ClosingLink
 from dob_hil.link.native import DacQuantizer
 from dob_hil.link.unwrap import CountUnwrapper
 
@@ -128,7 +129,7 @@ class _HookedNetwork(canopen.Network):
         self._on_send(msg)
 
 
-class Cia402DriveLink:
+class Cia402DriveLink(ClosingLink):
     """One CiA 402 drive in cyclic synchronous torque on a python-can bus. See the module docstring."""
 
     n_axes: Final = N_AXES
@@ -789,39 +790,6 @@ class Cia402DriveLink:
             return b""
         self._sync_counter = self._sync_counter % codec.SYNC_COUNTER_MAX + 1
         return codec.encode_sync(self._sync_counter)
-
-    def _stop_step(self, what: str, step: Callable[[], None]) -> None:
-        try:
-            step()
-        except DriveFault:
-            pass  # _send reported SEND_FAILED already
-        except Exception as exc:
-            try:
-                self._event(
-                    self._clock_ns(),
-                    LinkEventKind.SEND_FAILED,
-                    f"node {self._node}: safe_stop: {what} failed: {exc!r}",
-                )
-            except Exception:
-                _log.exception("safe_stop of node %d: %s failed and event_hook raised", self._node, what)
-
-    def close(self) -> None:
-        """safe_stop() once, then shut the bus down if this link owns it. Safe to call twice."""
-        if self._closed:
-            return
-        try:
-            self.safe_stop()
-        finally:
-            self._closed = True
-            if self._owns_bus:
-                try:
-                    self._bus.shutdown()
-                except Exception:
-                    _log.exception("shutting down the CAN bus of node %d failed", self._node)
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DriveFault(f"node {self._node}: the drive link is closed")
 
 
 def _hex(value: int | None) -> str:

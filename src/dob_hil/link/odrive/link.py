@@ -50,6 +50,7 @@ import numpy as np
 from dob_hil.config import DriveConfig
 from dob_hil.errors import ConfigError, DriveFault, ProtocolError
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
+from dob_hil.link.closing import ClosingLink
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import AxisState, CmdId, ControlMode, InputMode
 from dob_hil.link.odrive.options import OdriveOptions
@@ -146,7 +147,7 @@ class TorqueQuantizer:
         return torque, False
 
 
-class OdriveDriveLink:
+class OdriveDriveLink(ClosingLink):
     """One ODrive axis on a python-can bus. See the module docstring."""
 
     n_axes: Final = N_AXES
@@ -387,42 +388,11 @@ class OdriveDriveLink:
             return
         self._armed = False
         self._enable_attempt = False
-        for what in ("Set_Input_Torque 0", "Set_Axis_State IDLE"):
-            try:
-                if what == "Set_Input_Torque 0":
-                    self._send(self._torque_id, _TORQUE.pack(0.0), "Set_Input_Torque (stop)")
-                else:
-                    self._request_state(AxisState.IDLE)
-            except DriveFault:
-                pass  # reported as SEND_FAILED already
-            except Exception as exc:
-                try:
-                    self._event(
-                        self._clock_ns(),
-                        LinkEventKind.SEND_FAILED,
-                        f"node {self._node}: safe_stop: {what} failed: {exc!r}",
-                    )
-                except Exception:
-                    _log.exception("safe_stop of node %d: %s failed and event_hook raised", self._node, what)
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        try:
-            self.safe_stop()
-        finally:
-            self._closed = True
-            if self._owns_bus:
-                try:
-                    self._bus.shutdown()
-                except Exception:
-                    _log.exception("shutting down the CAN bus of node %d failed", self._node)
-
-    def __enter__(self) -> OdriveDriveLink:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+        self._stop_step(
+            "Set_Input_Torque 0",
+            lambda: self._send(self._torque_id, _TORQUE.pack(0.0), "Set_Input_Torque (stop)"),
+        )
+        self._stop_step("Set_Axis_State IDLE", lambda: self._request_state(AxisState.IDLE))
 
     # --- receiving ---------------------------------------------------------------------------------
     def _consume(self, msg: can.Message) -> None:
@@ -576,10 +546,6 @@ class OdriveDriveLink:
         self.stats.tx_frames += 1
         if self._frame_hook is not None:
             self._frame_hook(msg, False)
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise DriveFault(f"node {self._node}: the drive link is closed")
 
 
 def _describe(msg: can.Message) -> str:
