@@ -4,6 +4,7 @@ axis, both drive nodes left disabled at zero current, every axis in the log."""
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import json
 from pathlib import Path
@@ -23,6 +24,7 @@ from dob_hil.errors import ConfigError
 from dob_hil.link.protocol import DriveState, FrameKind
 from dob_hil.log import LogData, read_log
 from dob_hil.log.schemas import FLAG_FEEDBACK_MISSING
+from dob_hil.loop import session as session_module
 from dob_hil.loop.session import RunOptions, RunSummary, run_session
 from firmware_sim.axes import MultiAxisDrive
 
@@ -260,3 +262,26 @@ def test_a_non_square_plant_is_one_line_and_leaves_no_bus_open(
     errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
     assert len(errors) == 1 and "plant.C" in errors[0]
     assert not [r for r in caplog.records if "not properly shut down" in r.getMessage()]
+
+
+@pytest.mark.parametrize(
+    ("profile", "node_ids", "field"),
+    [("cia402", None, "plant.B"), ("odrive", None, "plant.B"), ("native", (1, 20), "drive.node_ids")],
+)
+def test_a_plant_the_profile_cannot_drive_is_refused_before_any_bus_opens(
+    mimo: Config, monkeypatch: pytest.MonkeyPatch, tmp_path: Path, profile: str, node_ids: Any, field: str
+) -> None:
+    """A real drive (an external bus) is never opened, let alone enabled, for a 2x2 plant on a
+    one-axis profile or for axes without a valid node each."""
+
+    def no_bus(*args: Any, **kw: Any) -> Any:
+        raise AssertionError("a bus was opened")
+
+    monkeypatch.setattr(session_module, "open_bus", no_bus)
+    monkeypatch.setattr(session_module, "bus_pair", no_bus)
+    drive = dataclasses.replace(mimo.drive, profile=profile, node_ids=node_ids)
+    config = dataclasses.replace(mimo, drive=drive)
+    options = RunOptions(log_path=tmp_path / "x.mcap", interface="virtual", channel="never-opened")
+    with pytest.raises(ConfigError) as refused:
+        run_session(config, options)
+    assert refused.value.field == field

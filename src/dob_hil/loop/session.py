@@ -212,6 +212,7 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
     design = build_design(config, dob_enabled=dob_enabled)
     profile = get_profile(config.drive.profile)
     profile.check_period(config.plant.period_ns)
+    profile.check_axes(config)  # before any bus opens: a real drive is never enabled for it
     refuse_overload(profile.bus_load(config))
     duration_s = options.duration_s if options.duration_s is not None else config.run.duration_s
     if not duration_s > 0:

@@ -83,6 +83,23 @@ class DriveProfile:
     tested: str = ""  # what the test suite covers, for the catalogue
     # the link's quantize() as a pure function of the drive config, for `replay` (None: DacQuantizer)
     make_quantizer: Callable[[DriveConfig], QuantizeFn] | None = None
+    max_axes: int = 1  # drive nodes one link drives on one bus (an axis: one plant input and output)
+
+    def check_axes(self, config: Config) -> None:
+        """Refuse, before any bus opens, a plant the profile cannot drive: not square (axis i is
+        input i and output i), more axes than :attr:`max_axes`, or without one node per axis."""
+        from dob_hil.errors import ConfigError
+        from dob_hil.link.axes import axis_node_ids, check_square
+
+        n_axes = check_square(config.plant)
+        if n_axes > self.max_axes:
+            raise ConfigError(
+                "plant.B",
+                f"the {self.name} profile drives {self.max_axes} axis (one current input); the "
+                f"plant has {n_axes} inputs",
+            )
+        if n_axes > 1:
+            axis_node_ids(config.drive, n_axes)
 
     def check_period(self, period_ns: int) -> None:
         """Refuse a control period the profile cannot serve, naming both numbers."""

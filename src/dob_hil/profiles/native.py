@@ -52,6 +52,7 @@ def _bus_load(config: Config) -> BusLoad:
 
 
 PROFILE = DriveProfile(
+    max_axes=16,  # node ids 0..15
     name="native",
     summary="dob_hil's own protocol: FEEDBACK every period from the drive, COMMAND answers it",
     clocking=Clocking.DRIVE,
