@@ -55,6 +55,42 @@ def bare_exchange(n: int) -> tuple[float, float]:
         drive.shutdown()
 
 
+# The frames of one period of each profile, in order: (sent by the host?, id, data length, remote).
+PROFILE_FRAMES: dict[str, tuple[tuple[bool, int, int, bool], ...]] = {
+    "native": ((False, 0x6B1, 6, False), (True, 0x6A1, 3, False)),
+    "cia402": ((True, 0x80, 0, False), (False, 0x181, 6, False), (True, 0x201, 4, False)),
+    "odrive": ((True, 0x29, 8, True), (False, 0x29, 8, False), (True, 0x2E, 8, False)),
+}
+
+
+def bare_profile_exchange(n: int, frames: tuple[tuple[bool, int, int, bool], ...]) -> float:
+    """CPU us of this thread per period for a bare exchange of a profile's own frames on ``virtual``.
+
+    Each frame is a fresh ``can.Message`` sent on one end and received on the other, as in
+    :func:`bare_exchange`; a profile with three frames per period (CiA 402: SYNC, RxPDO, TxPDO;
+    ODrive: the RTR, its answer, the torque) is compared with three.
+    """
+    channel = f"bench-{uuid.uuid4().hex}"
+    host = can.Bus(interface="virtual", channel=channel)
+    drive = can.Bus(interface="virtual", channel=channel)
+    try:
+        plan = [(host if by_host else drive, drive if by_host else host, aid, bytes(dlc), remote)
+                for by_host, aid, dlc, remote in frames]  # fmt: skip
+        c0 = time.thread_time_ns()
+        for _ in range(n):
+            for sender, receiver, aid, data, remote in plan:
+                dlc = 8 if remote else len(data)
+                msg = can.Message(
+                    arbitration_id=aid, data=data, is_extended_id=False, is_remote_frame=remote, dlc=dlc
+                )
+                sender.send(msg)
+                receiver.recv(0.0)
+        return (time.thread_time_ns() - c0) / n / 1000.0
+    finally:
+        host.shutdown()
+        drive.shutdown()
+
+
 def bare_exchange_us(n: int) -> float:
     return bare_exchange(n)[0]
 
@@ -105,6 +141,7 @@ def main() -> None:
     full: dict[str, list[float]] = {name: [] for name in PROFILES}
     full_cpu: dict[str, list[float]] = {name: [] for name in PROFILES}
     virtual: list[float] = []
+    bare_own: dict[str, list[float]] = {name: [] for name in PROFILES}
     dropped = 0
     with tempfile.TemporaryDirectory() as d:
         for i in range(repeats):  # interleaved, so all see the same machine state
@@ -112,6 +149,7 @@ def main() -> None:
             bare.append(wall)
             bare_cpu.append(cpu)
             for name, scenario in PROFILES.items():
+                bare_own[name].append(bare_profile_exchange(n_bare, PROFILE_FRAMES[name]))
                 us, cpu_us, drop = full_stack(scenario, n_samples, Path(d), str(i), "inprocess")
                 full[name].append(us)
                 full_cpu[name].append(cpu_us)
@@ -143,6 +181,11 @@ def main() -> None:
             "min": min(cpu_ratios),
             "max": max(cpu_ratios),
         }
+        own_ratios = [f / b for f, b in zip(full_cpu[name], bare_own[name], strict=True)]
+        result[f"{name}_bare_own_frames_cpu_us"] = median(bare_own[name])
+        result[f"{name}_cpu_ratio_vs_own_frames"] = {
+            "median": median(own_ratios), "min": min(own_ratios), "max": max(own_ratios)
+        }  # fmt: skip
     v_ratios = [f / b for f, b in zip(virtual, bare, strict=True)]
     result["native_on_virtual_us_per_sample"] = {"median": median(virtual), "ratio": median(v_ratios)}
     result["log_dropped_records"] = dropped
