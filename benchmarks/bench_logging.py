@@ -17,6 +17,11 @@
 4. Writer process CPU per sample (``RUSAGE_CHILDREN`` around a synthetic run, process start
    included), beside the ``mcap`` library's ``Writer.add_message`` writing the same records
    (4 per sample) timed in the same run.
+6. ``--only floor``: where the bytes of a real log go and the least any layout with one message per
+   record can reach: a lockstep ``paper-sine`` run of ``--size-samples`` samples; each channel's
+   messages re-compressed alone (the writer's zstd level, 256 KiB chunks) per sample, plus the
+   MessageIndex entries (16 B per message, which indexed readers need); and the same with the
+   CAN frames of a period bundled into one message (a layout this project does not write).
 5. ``--kill N``: the worst log lost at SIGKILL of the whole process group under load: N runs of a
    paced 3.33 kHz loop logging every period (sample, 2 frames, truth; real-time policy) beside
    two ``yes > /dev/null`` hogs, each killed after a random 0.9-6.9 s; loss = samples the loop
@@ -34,6 +39,7 @@ import math
 import mmap
 import os
 import resource
+import struct
 import tempfile
 import time
 from array import array
@@ -46,8 +52,9 @@ from _common import parser, percentiles, report
 
 from dob_hil.log import LogWriter, read_log
 from dob_hil.log.bench import PAPER_LAYOUT, measure_size, write_synthetic
+from dob_hil.log.chunked_file import ZSTD_LEVEL
 from dob_hil.log.mcap_scan import scan, walk_chunk
-from dob_hil.log.schemas import FLAG_DOB_ON, TOPIC_SAMPLE
+from dob_hil.log.schemas import FLAG_DOB_ON, TOPIC_CAN, TOPIC_SAMPLE
 
 PERIOD_NS = 300_000
 SPIN_NS = 100_000
@@ -55,6 +62,8 @@ CALLS = ("frame_rx", "frame_tx", "sample", "truth", "flush", "period")
 P99_GOAL_US = 5.0
 SIZE_GOAL_B = 150.0
 WRITER_GOAL_US = 8.0
+# A Message record after its opcode and length: channel id, sequence, log time, publish time.
+_RECORD_HEAD = struct.Struct("<HIQQ")
 
 
 class LoopRecords:
@@ -241,6 +250,64 @@ def log_size(tmp: Path, n: int) -> dict[str, Any]:
     return out
 
 
+def _compressed_B(records: list[bytes], chunk_bytes: int = 256 * 1024) -> int:
+    """zstd bytes of ``records`` cut into chunks of ``chunk_bytes`` as the writer cuts them."""
+    cctx = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+    total, run, size = 0, [], 0
+    for record in records:
+        run.append(record)
+        size += len(record)
+        if size >= chunk_bytes:
+            total += len(cctx.compress(b"".join(run)))
+            run, size = [], 0
+    return total + (len(cctx.compress(b"".join(run))) if run else 0)
+
+
+def size_floor(tmp: Path, n: int) -> dict[str, Any]:
+    """Bytes per sample of a real lockstep log by channel, and the floor of a message-per-record layout."""
+    from mcap.reader import make_reader
+
+    from dob_hil.config import load_config
+    from dob_hil.loop.session import RunOptions, run_session
+    from dob_hil.scenarios import scenario_path
+
+    config = load_config(scenario_path("paper-sine"))
+    path = tmp / "floor.mcap"
+    run_session(config, RunOptions(duration_s=n * config.plant.period_ns * 1e-9, log_path=path))
+    by_topic: dict[str, list[bytes]] = {}
+    in_order: list[tuple[str, bytes]] = []
+    with path.open("rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            record = _RECORD_HEAD.pack(channel.id, message.sequence, message.log_time, message.log_time)
+            by_topic.setdefault(channel.topic, []).append(record + message.data)
+            in_order.append((channel.topic, record + message.data))
+    samples = len(by_topic.get(TOPIC_SAMPLE, []))
+    out: dict[str, Any] = {"samples": samples, "file_B": round(path.stat().st_size / samples, 1)}
+    floor = 0.0
+    for topic, records in sorted(by_topic.items()):
+        alone = _compressed_B(records) / samples
+        index = 16 * len(records) / samples
+        floor += alone + index
+        out[topic] = {"messages_per_sample": round(len(records) / samples, 3),
+                      "compressed_alone_B": round(alone, 1), "index_B": round(index, 1)}  # fmt: skip
+    out["floor_one_message_per_record_B"] = round(floor, 1)
+    bundled: list[bytes] = []
+    frames: list[bytes] = []
+    for topic, record in in_order:  # consecutive frames (a period's) as one message
+        if topic == TOPIC_CAN:
+            frames.append(record[_RECORD_HEAD.size + 4 :])
+            continue
+        if frames:
+            bundled.append(
+                _RECORD_HEAD.pack(0, 0, 0, 0) + len(frames).to_bytes(4, "little") + b"".join(frames)
+            )
+            frames = []
+        bundled.append(record)
+    out["frames_bundled_per_period_B"] = round((_compressed_B(bundled) + 16 * len(bundled)) / samples, 1)
+    path.unlink()
+    return out
+
+
 def writer_cpu(tmp: Path, n: int) -> dict[str, Any]:
     """Writer-process CPU per sample, and the mcap library's add_message per sample, same run."""
     from mcap.writer import Writer
@@ -363,7 +430,7 @@ def main() -> None:
     p.add_argument("--paced-s", type=float, help="seconds of the paced per-call run (default 20, smoke 0.5)")
     p.add_argument("--size-samples", type=int, help="samples of the size logs (default 200000, smoke 5000)")
     p.add_argument("--kill", type=int, metavar="N", help="also measure the SIGKILL loss under load, N runs")
-    p.add_argument("--only", choices=("cpu", "size", "kill"), help="only this measurement")
+    p.add_argument("--only", choices=("cpu", "size", "floor", "kill"), help="only this measurement")
     args = p.parse_args()
     paced_n = round((args.paced_s or (0.5 if args.smoke else 20.0)) * 1e9 / PERIOD_NS)
     unpaced_n = 5_000 if args.smoke else 200_000
@@ -377,6 +444,8 @@ def main() -> None:
                 result["writer_cpu"] = writer_cpu(tmp, size_n)
             elif args.only == "size":
                 result["size"] = log_size(tmp, size_n)
+            elif args.only == "floor":
+                result["floor"] = size_floor(tmp, size_n)
             else:
                 result["kill"] = kill_loss(tmp, args.kill or (1 if args.smoke else 10))
             report(f"logging: {args.only}", result, args.json)
