@@ -146,6 +146,12 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         )
         p.add_argument("--plots", help="folder for the PNG plots (default: beside the log)")
         p.add_argument("--no-plots", action="store_true", help="skip the plots")
+        p.add_argument(
+            "--plot-window",
+            metavar="START:END",
+            help="plot only this stretch, in seconds from the first sample (default: all of a log up to "
+            "100,000 samples; the first 100,000 samples of a longer one)",
+        )
     elif name == "replay":
         p.add_argument("log", help="MCAP log")
         g = p.add_mutually_exclusive_group(required=True)

@@ -125,8 +125,8 @@ def test_long_log_is_streamed_by_the_command(
     called: list[Path] = []
     from dob_hil.analysis import streamed
 
-    real = streamed.analyze_streamed
-    monkeypatch.setattr(streamed, "analyze_streamed", lambda p, f: called.append(p) or real(p, f))
+    real = streamed.survey
+    monkeypatch.setattr(streamed, "survey", lambda p, f: called.append(p) or real(p, f))
     got = analyze_command.analyze_logs([path, other], from_s=0.0, plots_dir=None, as_json=True, plots=False)
     assert called == [path, other]
     assert json.loads(capsys.readouterr().out) == got

@@ -2,7 +2,8 @@
 
 Every array has one row per logged sample, in file order:
 
-- ``t_s``: sample instant relative to the first sample, in seconds;
+- ``t_s``: sample instant relative to the first sample (or to ``t0_ns``, the first sample of the
+  whole log when ``log`` holds a stretch of it), in seconds;
 - ``y_ref``: reference output ``C x_ref`` (design C; without a design, the first p reference states);
 - ``y_meas``: measured output (``position``); ``has_feedback``: the sample had real feedback
   (flag bit 2 clear and a receive time);
@@ -65,14 +66,14 @@ def encoder_quantum(log: LoadedLog) -> float:
         return 0.0
 
 
-def derive_signals(log: LoadedLog) -> Signals:
+def derive_signals(log: LoadedLog, t0_ns: int | None = None) -> Signals:
     s = log.data.samples
     truth = log.data.truth
     n = len(s)
     p = log.data.layout.n_outputs
     n_plant = log.data.layout.n_plant_states
     t_ns = s["time_ns"].view(np.int64)
-    t_s = (t_ns - t_ns[0]) * 1e-9 if n else np.zeros(0)
+    t_s = (t_ns - (t_ns[0] if t0_ns is None else t0_ns)) * 1e-9 if n else np.zeros(0)
     x_ref = s["x_ref"]
     y_meas = s["position"]
     has_fb = (s["flags"] & FLAG_FEEDBACK_MISSING) == 0

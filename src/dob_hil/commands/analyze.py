@@ -7,8 +7,11 @@ in the order given, with the keys documented in :mod:`dob_hil.analysis.metrics` 
 the log cannot give are ``null``. Plots go to ``--plots DIR``, by default to a folder beside the
 first log: ``<stem>-plots/`` (one log) or ``<stem1>-vs-<stem2>-plots/`` (several, overlaid).
 
-Without plots, a log of more than ``STREAM_ABOVE_SAMPLES`` samples is analysed streamed, in memory
-independent of its length (:mod:`dob_hil.analysis.streamed`); with plots, logs are read whole.
+A log of more than ``STREAM_ABOVE_SAMPLES`` samples is analysed streamed, in memory independent of
+its length (:mod:`dob_hil.analysis.streamed`), and its plots show a window of it read through the
+chunk index (:mod:`dob_hil.analysis.plot_window`): its first ``STREAM_ABOVE_SAMPLES`` samples, or
+``--plot-window START:END`` seconds. Shorter logs are read whole and plotted whole unless
+``--plot-window`` is given.
 """
 
 from __future__ import annotations
@@ -135,12 +138,15 @@ def analyze_logs(
     as_json: bool,
     plots: bool = True,
     table_path: Path | None = None,
+    plot_window_s: tuple[float, float] | None = None,
 ) -> list[dict[str, Any]]:
     """Read each log, compute its metrics over ``from_s`` .. end, print them (table or JSON on
     stdout, warnings on stderr), write the overlaid plots (unless ``plots`` is False) into
     ``plots_dir`` (None: :func:`default_plots_dir`), the table also into ``table_path`` if given,
-    and return the metrics, one dict per log.
-    Raises LogReadError for a file that is no log at all, ConfigError for a bad ``from_s``."""
+    and return the metrics, one dict per log. ``plot_window_s`` (start, end) in seconds from each
+    log's first sample limits the plots to that stretch (module docstring).
+    Raises LogReadError for a file that is no log at all, ConfigError for a bad ``from_s`` or a
+    window that holds no samples."""
     from dob_hil.analysis.loaded import ANALYSIS_FIELDS, load_log
     from dob_hil.analysis.metrics import compute_metrics
     from dob_hil.analysis.signals import derive_signals
@@ -157,18 +163,33 @@ def analyze_logs(
         ensure_dir(plots_dir if plots_dir is not None else default_plots_dir(paths), "--plots")
     logs: list[Any] = []
     results: list[dict[str, Any]] = []
-    signals: list[Any] = []
+    plotted: list[Any] = []  # (log, signals) of the stretch each log's plots show
+    windows: list[str] = []
     for p in paths:
-        if not plots and indexed_samples(p) > STREAM_ABOVE_SAMPLES:
-            from dob_hil.analysis.streamed import analyze_streamed
+        if indexed_samples(p) > STREAM_ABOVE_SAMPLES:
+            from dob_hil.analysis.streamed import streamed_metrics, survey
 
-            log, metrics = analyze_streamed(p, from_s)
+            log, sv = survey(p, from_s)
+            metrics = streamed_metrics(log, sv)
+            if plots and sv.n:
+                from dob_hil.analysis.plot_window import window_of_long_log
+
+                window = plot_window_s
+                if window is None:
+                    window = (0.0, STREAM_ABOVE_SAMPLES * (log.period_ns or 0) * 1e-9)
+                plotted.append(window_of_long_log(p, sv.t0, sv.last["time_ns"], log.period_ns, window))
+                span_s = (sv.last["time_ns"] - sv.t0) * 1e-9
+                windows.append(f"{p.name}: {window[0]:g}-{window[1]:g} s of 0-{span_s:g} s")
         else:
             log = load_log(p, fields=ANALYSIS_FIELDS)
             sig = derive_signals(log)
             metrics = compute_metrics(log, from_s, sig)
-            if plots:
-                signals.append(sig)
+            if plots and plot_window_s is not None:
+                from dob_hil.analysis.plot_window import window_of_loaded_log
+
+                plotted.append(window_of_loaded_log(log, plot_window_s))
+            elif plots:
+                plotted.append((log, sig))
             else:  # nothing else needs the arrays: let them go before the next log
                 for name in ("samples", "frames", "truth", "fd_frames"):
                     setattr(log.data, name, getattr(log.data, name)[:0].copy())
@@ -185,11 +206,10 @@ def analyze_logs(
         from dob_hil.analysis.plots import PlotInput, write_plots
 
         out_dir = plots_dir if plots_dir is not None else default_plots_dir(paths)
-        written = write_plots(
-            [PlotInput(log, sig) for log, sig in zip(logs, signals, strict=True)], out_dir, from_s=from_s
-        )
+        written = write_plots([PlotInput(log, sig) for log, sig in plotted], out_dir, from_s=from_s)
     for metrics in results:
         metrics["plots"] = [str(p) for p in written]
+        metrics["plot_window_s"] = None if plot_window_s is None else list(plot_window_s)
     if as_json:
         print(json.dumps(results, indent=1, allow_nan=False))
     units = {log.design.output_unit for log in logs if log.design is not None}
@@ -200,7 +220,21 @@ def analyze_logs(
         print(table)
         if written:
             print(f"plots: {len(written)} PNG files in {written[0].parent}")
+        if windows and plot_window_s is None:
+            shown = "; ".join(windows)
+            print(f"plots of long logs show a window (--plot-window START:END chooses it): {shown}")
     return results
+
+
+def _plot_window(args: argparse.Namespace) -> tuple[float, float] | None:
+    text = getattr(args, "plot_window", None)
+    if text is None:
+        return None
+    if args.no_plots:
+        raise ConfigError("--plot-window", "chooses what the plots show, and --no-plots asks for no plots")
+    from dob_hil.analysis.plot_window import parse_plot_window
+
+    return parse_plot_window(text)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -210,5 +244,6 @@ def main(args: argparse.Namespace) -> int:
         plots_dir=Path(args.plots) if args.plots else None,
         as_json=args.json,
         plots=not args.no_plots,
+        plot_window_s=_plot_window(args),
     )
     return 0

@@ -98,6 +98,8 @@ class ChunkRef:
     data_length: int
     indexes: dict[int, tuple[int, int]] = field(default_factory=dict)  # channel -> (pairs offset, count)
     index_end: int = 0  # file offset just past its last message index record
+    start_time_ns: int = 0  # log time of its first message, as the chunk record declares it
+    end_time_ns: int = 0  # log time of its last message
 
 
 @dataclass(slots=True)
@@ -174,13 +176,16 @@ def parse_channel(buf: Buffer, start: int, end: int) -> ChannelRecord:
 
 def _parse_chunk(buf: Buffer, offset: int, start: int, end: int) -> ChunkRef:
     c = _Cursor(buf, start, end)
-    _, _, usize, crc = _CHUNK_HEAD.unpack_from(buf, c.take(_CHUNK_HEAD.size))
+    start_ns, end_ns, usize, crc = _CHUNK_HEAD.unpack_from(buf, c.take(_CHUNK_HEAD.size))
     compression = c.string()
     length = c.u64()
     data_offset = c.take(length)
     if c.pos != end:
         raise RecordError(f"records length {length} disagrees with the record length")
-    return ChunkRef(offset, end, usize, crc, compression, data_offset, length, index_end=end)
+    return ChunkRef(
+        offset, end, usize, crc, compression, data_offset, length,
+        index_end=end, start_time_ns=start_ns, end_time_ns=end_ns,
+    )  # fmt: skip
 
 
 def _parse_message_index(buf: Buffer, start: int, end: int) -> tuple[int, int, int]:

@@ -146,8 +146,14 @@ def read_log(
     topics: Iterable[str] | None = None,
     fields: Mapping[str, Iterable[str]] | None = None,
     verify_crc: bool = True,
+    log_time_window_ns: tuple[int, int] | None = None,
 ) -> LogData:
     """Read a dob_hil MCAP log; ``topics`` limits which channels are decoded (all by default).
+
+    ``log_time_window_ns`` (first, last log time) reads only the chunks whose declared log times
+    overlap that window (an indexed read: the rest of the file is never decompressed), so a
+    stretch of a log of any length is read in memory bounded by the stretch; the arrays hold every
+    message of those chunks, which may reach a chunk beyond either end of the window.
 
     ``fields`` maps a fixed-size topic to the message fields to keep (all by default): the
     arrays then hold only those, so an hour-long log fits in memory for an analysis that needs
@@ -164,7 +170,8 @@ def read_log(
         raise LogReadError(f"{path}: cannot read: {exc}") from exc
     try:
         keep = None if fields is None else {topic: tuple(names) for topic, names in fields.items()}
-        return _Reader(mm, str(path), None if topics is None else set(topics), verify_crc, keep).read()
+        reader = _Reader(mm, str(path), None if topics is None else set(topics), verify_crc, keep)
+        return reader.read(log_time_window_ns)
     finally:
         mm.close()
 
@@ -225,10 +232,13 @@ class _Reader:
         self.event_json = False
 
     # ------------------------------------------------------------------ top level
-    def read(self) -> LogData:
+    def read(self, log_time_window_ns: tuple[int, int] | None = None) -> LogData:
         fmap = self.fmap
         self._learn_channels()
         layout = self._layout()
+        if log_time_window_ns is not None:  # after the channels: a summary-less log finds them in chunk 1
+            first_ns, last_ns = log_time_window_ns
+            fmap.chunks = [c for c in fmap.chunks if c.end_time_ns >= first_ns and c.start_time_ns <= last_ns]
         fixed, event_channel = self._outputs(layout)
         events: list[dict[str, Any]] = []
         for group in self._groups():
