@@ -14,6 +14,7 @@ was sent.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -21,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dob_hil.analysis.loaded import LoadedLog
-from dob_hil.analysis.rerun import MissingPolicy, Quantize, Rerun, rerun
+from dob_hil.analysis.rerun import MissingPolicy, Quantize, Rerun, RerunChain
 from dob_hil.config import Config, DriveConfig
 from dob_hil.control.step import compile_step
 from dob_hil.design import Design
@@ -32,6 +33,7 @@ from dob_hil.log.schemas import FLAG_SATURATED
 from dob_hil.profiles import get_profile
 
 MAX_REPORTED = 10
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -108,12 +110,15 @@ def per_axis(quantize: Quantize, n_inputs: int) -> Quantize:
     return each
 
 
-def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
+def _chain(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> RerunChain:
     step = compile_step(controller_gains(design), log.dob_enabled)  # with the reference feedforward
     make_quantizer = get_profile(drive.profile).make_quantizer
     quantize = DacQuantizer(drive).quantize if make_quantizer is None else make_quantizer(drive)
-    quantize = per_axis(quantize, step.n_inputs)
-    return rerun(step, quantize, log.data.samples, design.C, missing, log.data.events)
+    return RerunChain(step, per_axis(quantize, step.n_inputs), design.C, missing, log.data.events)
+
+
+def _rerun_with(log: LoadedLog, design: Design, drive: DriveConfig, missing: MissingPolicy) -> Rerun:
+    return _chain(log, design, drive, missing).feed(log.data.samples)
 
 
 def _bits(values: npt.NDArray[Any]) -> npt.NDArray[Any]:
@@ -199,6 +204,17 @@ def verify(log: LoadedLog, *, max_reported: int = MAX_REPORTED) -> VerifyResult:
     )
 
 
+@dataclass(frozen=True)
+class RedesignSeries:
+    """What the redesign plot draws, decimated as it was computed (min/max per bucket of every
+    drawn signal, :mod:`dob_hil.analysis.downsample`): at most a few thousand rows per input,
+    whatever the log's length."""
+
+    t_s: FloatArray  # from the first sample
+    sent_A: FloatArray  # (rows, inputs)
+    other_A: FloatArray
+
+
 @dataclass
 class RedesignResult:
     design_name: str
@@ -217,11 +233,13 @@ class RedesignResult:
     u_applied_diff_max_A_per_input: list[float] = field(default_factory=list)
     sent_rms_A_per_input: list[float] = field(default_factory=list)
     other_rms_A_per_input: list[float] = field(default_factory=list)
-    rerun: Rerun | None = None  # the other design's commands (not in to_dict)
+    rerun: Rerun | None = None  # the other design's commands, when kept (not in to_dict)
+    series: RedesignSeries | None = None  # for the plot (not in to_dict)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("rerun")
+        d.pop("series")
         return d
 
 
@@ -241,43 +259,133 @@ def check_compatible(log: LoadedLog, other: Design) -> None:
         )
 
 
+class _Sums:
+    """Sums of squares and maxima per input, accumulated block by block."""
+
+    def __init__(self, m: int) -> None:
+        self.sq = np.zeros(m)
+        self.max = np.zeros(m)
+
+    def add(self, x: FloatArray) -> None:
+        if len(x):
+            self.sq += np.sum(np.square(x), axis=0)
+            self.max = np.maximum(self.max, np.max(np.abs(x), axis=0))
+
+    def rms(self, n: int) -> list[float]:
+        return [float(np.sqrt(v / n)) if n else 0.0 for v in self.sq]
+
+    def rms_all(self, n: int) -> float:
+        return float(np.sqrt(np.sum(self.sq) / (n * len(self.sq)))) if n else 0.0
+
+    def max_all(self) -> float:
+        return float(np.max(self.max)) if len(self.max) else 0.0
+
+
+def _decimated_rows(t: FloatArray, columns: list[FloatArray], max_points: int) -> npt.NDArray[np.int64]:
+    """Rows that keep every column's min/max envelope (:func:`envelope_indices`)."""
+    from dob_hil.analysis.downsample import envelope_indices
+
+    picks = [envelope_indices(c, max_points) for c in columns]
+    return np.unique(np.concatenate(picks)) if picks else np.arange(len(t), dtype=np.int64)
+
+
 def redesign(log: LoadedLog, other: Design) -> RedesignResult:
-    """What ``other`` would have commanded on the log's measurements (module docstring)."""
+    """What ``other`` would have commanded on the log's measurements (module docstring), over the
+    samples ``log`` holds; the result keeps the whole re-run (``rerun``)."""
+    return redesign_blocks(log, [log.data.samples], other, keep_rerun=True)
+
+
+def redesign_blocks(
+    log: LoadedLog,
+    blocks: Iterable[npt.NDArray[np.void]],
+    other: Design,
+    *,
+    total_samples: int | None = None,
+    keep_rerun: bool = False,
+) -> RedesignResult:
+    """:func:`redesign` over the samples given block by block (a streamed log): memory bounded by
+    a block and the plot's decimated series (``total_samples``, the expected count, spreads the
+    plot's points over the blocks), unless ``keep_rerun``."""
+    from dob_hil.analysis.downsample import DEFAULT_MAX_POINTS
+
     check_compatible(log, other)
     notes: list[str] = []
     drive = logged_drive(log, notes)
     missing = logged_missing_policy(log, notes)
-    r = _rerun_with(log, other, drive, missing)
-    s = log.data.samples
-    sent = np.asarray(s["u_applied_a"], dtype=np.float64)
-    cmd = np.asarray(s["u_cmd_a"], dtype=np.float64)
-    n = len(s)
-
-    def rms(x: npt.NDArray[np.float64]) -> float:
-        return float(np.sqrt(np.mean(np.square(x)))) if x.size else 0.0
-
-    def amax(x: npt.NDArray[np.float64]) -> float:
-        return float(np.abs(x).max()) if x.size else 0.0
-
+    chain = _chain(log, other, drive, missing)
+    m = chain.step.n_inputs
+    diff_sums, cmd_sums, sent_sums, other_sums = _Sums(m), _Sums(m), _Sums(m), _Sums(m)
+    n = saturated = 0
+    t0_ns: int | None = None
+    kept: list[tuple[FloatArray, FloatArray, FloatArray]] = []
+    reruns: list[Rerun] = []
+    for block in blocks:
+        if len(block) == 0:
+            continue
+        r = chain.feed(block)
+        sent = np.asarray(block["u_applied_a"], dtype=np.float64).reshape(len(block), m)
+        cmd = np.asarray(block["u_cmd_a"], dtype=np.float64).reshape(len(block), m)
+        diff = r.u_applied - sent
+        diff_sums.add(diff)
+        cmd_sums.add(r.u_cmd - cmd)
+        sent_sums.add(sent)
+        other_sums.add(r.u_applied)
+        saturated += int(np.count_nonzero(r.saturated))
+        n += len(block)
+        t_ns = block["time_ns"].astype(np.int64)
+        if t0_ns is None:
+            t0_ns = int(t_ns[0])
+        t = np.asarray((t_ns - t0_ns) * 1e-9, dtype=np.float64)
+        budget = DEFAULT_MAX_POINTS
+        if total_samples:
+            budget = max(16, -(-DEFAULT_MAX_POINTS * len(block) // total_samples))
+        rows = _decimated_rows(t, [c[:, j] for c in (sent, r.u_applied, diff) for j in range(m)], budget)
+        kept.append((t[rows], sent[rows], r.u_applied[rows]))
+        if keep_rerun:
+            reruns.append(r)
     notes.append("open loop: the plant's response to the other commands is not modelled")
-    diff = r.u_applied - sent
-    m = sent.shape[1] if sent.ndim == 2 else 1
-    columns = range(m)
+    series = RedesignSeries(
+        np.concatenate([k[0] for k in kept]) if kept else np.zeros(0),
+        np.concatenate([k[1] for k in kept]) if kept else np.zeros((0, m)),
+        np.concatenate([k[2] for k in kept]) if kept else np.zeros((0, m)),
+    )
     return RedesignResult(
         design_name=other.name,
         samples=n,
         dob_enabled=log.dob_enabled,
-        u_applied_diff_rms_A=rms(r.u_applied - sent),
-        u_applied_diff_max_A=amax(r.u_applied - sent),
-        u_cmd_diff_rms_A=rms(r.u_cmd - cmd),
-        u_cmd_diff_max_A=amax(r.u_cmd - cmd),
-        sent_rms_A=rms(sent),
-        other_rms_A=rms(r.u_applied),
-        other_saturated_fraction=float(np.mean(r.saturated)) if n else 0.0,
+        u_applied_diff_rms_A=diff_sums.rms_all(n),
+        u_applied_diff_max_A=diff_sums.max_all(),
+        u_cmd_diff_rms_A=cmd_sums.rms_all(n),
+        u_cmd_diff_max_A=cmd_sums.max_all(),
+        sent_rms_A=sent_sums.rms_all(n),
+        other_rms_A=other_sums.rms_all(n),
+        other_saturated_fraction=saturated / n if n else 0.0,
         notes=notes,
-        u_applied_diff_rms_A_per_input=[rms(diff[:, j]) for j in columns],
-        u_applied_diff_max_A_per_input=[amax(diff[:, j]) for j in columns],
-        sent_rms_A_per_input=[rms(sent[:, j]) for j in columns],
-        other_rms_A_per_input=[rms(r.u_applied[:, j]) for j in columns],
-        rerun=r,
+        u_applied_diff_rms_A_per_input=diff_sums.rms(n),
+        u_applied_diff_max_A_per_input=[float(v) for v in diff_sums.max],
+        sent_rms_A_per_input=sent_sums.rms(n),
+        other_rms_A_per_input=other_sums.rms(n),
+        rerun=_joined(reruns) if keep_rerun else None,
+        series=series,
+    )
+
+
+def _joined(parts: list[Rerun]) -> Rerun | None:
+    if len(parts) <= 1:
+        return parts[0] if parts else None
+
+    def cat(name: str) -> Any:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    return Rerun(
+        position=cat("position"),
+        x_hat=cat("x_hat"),
+        x_bar=cat("x_bar"),
+        u_fb=cat("u_fb"),
+        u_dist=cat("u_dist"),
+        u_cmd=cat("u_cmd"),
+        u_applied=cat("u_applied"),
+        dac_counts=cat("dac_counts"),
+        saturated=cat("saturated"),
+        resyncs=[seq for p in parts for seq in p.resyncs],
     )

@@ -10,14 +10,14 @@ import numpy.typing as npt
 from dob_hil.analysis.downsample import envelope
 from dob_hil.analysis.loaded import LoadedLog
 from dob_hil.analysis.plots import DPI
-from dob_hil.analysis.rerun import Rerun
+from dob_hil.analysis.replay import RedesignSeries
 
 FloatArray = npt.NDArray[np.float64]
 
 
-def plot_redesign(log: LoadedLog, rerun: Rerun, design_name: str, path: Path) -> Path:
+def plot_redesign(log: LoadedLog, series: RedesignSeries, design_name: str, path: Path) -> Path:
     """Per plant input: applied current sent vs the other design's (upper panel) and their
-    difference (lower panel)."""
+    difference (lower panel), from the decimated series of :func:`replay.redesign_blocks`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -25,10 +25,8 @@ def plot_redesign(log: LoadedLog, rerun: Rerun, design_name: str, path: Path) ->
 
     from dob_hil.analysis.plots import axis_name, literal
 
-    s = log.data.samples
-    t_ns = s["time_ns"].astype(np.int64)
-    t: FloatArray = np.asarray((t_ns - (t_ns[0] if len(t_ns) else 0)) * 1e-9, dtype=np.float64)
-    m = int(s["u_applied_a"].shape[1])
+    t = series.t_s
+    m = int(series.sent_A.shape[1])
     unit = literal(log.design.input_unit) if log.design is not None else "A"
     fig, axes = plt.subplots(
         2 * m, 1, figsize=(9.0, 7.0 * m), sharex=True, height_ratios=(2, 1) * m, squeeze=False
@@ -36,8 +34,8 @@ def plot_redesign(log: LoadedLog, rerun: Rerun, design_name: str, path: Path) ->
     for j in range(m):
         ax, ax2 = axes[2 * j, 0], axes[2 * j + 1, 0]
         which = f"{axis_name(log, 'input', j)}: " if m > 1 else ""
-        sent: FloatArray = np.asarray(s["u_applied_a"][:, j], dtype=np.float64)
-        other: FloatArray = np.asarray(rerun.u_applied[:, j], dtype=np.float64)
+        sent: FloatArray = np.asarray(series.sent_A[:, j], dtype=np.float64)
+        other: FloatArray = np.asarray(series.other_A[:, j], dtype=np.float64)
         diff: FloatArray = np.asarray(other - sent, dtype=np.float64)
         ax.plot(*envelope(t, sent), color="C0", lw=1.2, label=f"sent ({literal(log.label)})")
         ax.plot(*envelope(t, other), color="C1", lw=1.0,

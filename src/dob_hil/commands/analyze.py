@@ -168,7 +168,9 @@ def analyze_logs(
     for p in paths:
         if indexed_samples(p) > STREAM_ABOVE_SAMPLES:
             from dob_hil.analysis.streamed import streamed_metrics, survey
+            from dob_hil.log.stream import return_large_buffers_to_the_os
 
+            return_large_buffers_to_the_os()
             log, sv = survey(p, from_s)
             metrics = streamed_metrics(log, sv)
             if plots and sv.n:

@@ -70,17 +70,24 @@ def _verify(log: LoadedLog, as_json: bool) -> int:
 
 
 def _design(log: LoadedLog, other: str, as_json: bool) -> int:
-    from dob_hil.analysis.replay import redesign
+    """``--design``: the samples streamed block by block (memory bounded whatever the log's length)."""
+    from dob_hil.analysis.replay import redesign_blocks
     from dob_hil.analysis.replay_plot import plot_redesign
+    from dob_hil.commands.analyze import indexed_samples
+    from dob_hil.log.reader import iter_channel
+    from dob_hil.log.schemas import TOPIC_SAMPLE
+    from dob_hil.log.stream import return_large_buffers_to_the_os
 
-    if len(log.data.samples) == 0:
+    return_large_buffers_to_the_os()
+    design = load_other_design(other, log.dob_enabled)
+    total = indexed_samples(log.path)
+    result = redesign_blocks(log, iter_channel(log.path, TOPIC_SAMPLE), design, total_samples=total)
+    if result.samples == 0:
         raise _no_samples(log, "re-run")
     _warn(log)
-    design = load_other_design(other, log.dob_enabled)
-    result = redesign(log, design)
     plot_path = log.path.with_name(f"{log.path.stem}-replay-{design.name}.png")
-    assert result.rerun is not None
-    plot_redesign(log, result.rerun, design.name, plot_path)
+    assert result.series is not None
+    plot_redesign(log, result.series, design.name, plot_path)
     out: dict[str, Any] = {
         "mode": "design",
         "log": str(log.path),
@@ -212,13 +219,13 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.verify:  # the samples are streamed: read the events, metadata and attachments only
+    if args.verify or args.design:  # the samples are streamed: read the events, metadata, attachments
         from dob_hil.log.schemas import TOPIC_EVENT
 
         log = load_log(Path(args.log), topics=[TOPIC_EVENT])
-        return _verify(log, args.json)
-    log = load_log(Path(args.log))
-    if args.design:
+        if args.verify:
+            return _verify(log, args.json)
         return _design(log, args.design, args.json)
+    log = load_log(Path(args.log))
     _warn(log)
     return _to_bus(log, args)
