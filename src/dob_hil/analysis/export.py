@@ -13,20 +13,34 @@ channel is python-can's default (1 in BLF/ASC).
 Samples: one CSV row per sample, one column per scalar: array fields become ``name_0``,
 ``name_1``, ...; integers in decimal, floats with 17 significant digits (they read back to the
 same float64).
+
+Both are streamed from the log group of chunks by group (:func:`export_log_frames`,
+:func:`write_log_samples_csv` over :func:`dob_hil.log.stream.open_stream`), so a log of any length
+is exported in bounded memory: a first pass over the frames' ids and times finds our transmitted
+ids (for the echoes) and the first timestamp (for the wall clock), the second writes. Each
+channel's frames are in non-decreasing time (one clock per log, log time = frame timestamp); the
+two channels are merged by timestamp (classic first on a tie). A frame that goes back in time
+within its channel (a foreign capture) is written where the file holds it, and counted.
 """
 
 from __future__ import annotations
 
+import heapq
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import can
 import numpy as np
 import numpy.typing as npt
 
-from dob_hil.analysis.frames import frame_messages
+from dob_hil.analysis.frames import message_of_row
 from dob_hil.errors import DobHilError
-from dob_hil.log.schemas import CAN_TX
+from dob_hil.log.schemas import CAN_TX, TOPIC_CAN, TOPIC_CAN_FD, TOPIC_SAMPLE
+from dob_hil.log.stream import open_stream
+from dob_hil.log.wallclock import wall_offset_ns
 
 StructArray = npt.NDArray[np.void]
 FRAME_FORMATS: Final = ("blf", "asc", "csv")
@@ -46,29 +60,8 @@ def default_export_path(log_path: Path, fmt: str, samples: bool) -> Path:
     return log_path.with_name(f"{log_path.stem}.{fmt}")
 
 
-def own_echoes(frames: StructArray) -> npt.NDArray[np.bool_]:
-    """Mask of received frames whose id we transmit: the bus's copies of our own frames."""
-    tx = frames["direction"] == CAN_TX
-    if not tx.any():
-        return np.zeros(len(frames), dtype=np.bool_)
-    ids = np.unique(frames["arbitration_id"][tx])
-    return np.asarray(~tx & np.isin(frames["arbitration_id"], ids), dtype=np.bool_)
-
-
-def export_frames(
-    frames: StructArray, fd_frames: StructArray, *, wall_offset_ns: int = 0
-) -> tuple[StructArray, StructArray, int]:
-    """(frames, FD frames, echoes dropped): own echoes removed, timestamps moved by ``wall_offset_ns``."""
-    echoes = own_echoes(frames)
-    kept = frames[~echoes].copy()
-    fd_kept = fd_frames[~own_echoes(fd_frames)].copy() if len(fd_frames) else fd_frames.copy()
-    for arr in (kept, fd_kept):
-        arr["timestamp_ns"] = arr["timestamp_ns"].astype(np.int64) + np.int64(wall_offset_ns)
-    return kept, fd_kept, int(np.count_nonzero(echoes)) + (len(fd_frames) - len(fd_kept))
-
-
-def write_frames(frames: StructArray, fd_frames: StructArray, path: Path, fmt: str) -> int:
-    """Write every frame to ``path`` in ``fmt`` (blf, asc, csv); returns the frame count."""
+def write_messages(messages: Iterable[can.Message], path: Path, fmt: str) -> int:
+    """Write ``messages`` to ``path`` in ``fmt`` (blf, asc, csv) with python-can's writers."""
     writers: dict[str, type[can.io.generic.MessageWriter]] = {
         "blf": can.BLFWriter,
         "asc": can.ASCWriter,
@@ -79,12 +72,89 @@ def write_frames(frames: StructArray, fd_frames: StructArray, path: Path, fmt: s
     count = 0
     try:
         with writers[fmt](path) as writer:
-            for msg in frame_messages(frames, fd_frames):
+            for msg in messages:
                 writer.on_message_received(msg)
                 count += 1
     except OSError as exc:
         raise ExportError(f"{path}: cannot write: {exc}") from exc
     return count
+
+
+_FRAME_FIELDS = ("timestamp_ns", "arbitration_id", "direction", "dlc", "flags", "data")
+
+
+@dataclass
+class FrameExport:
+    """What :func:`export_log_frames` wrote and met."""
+
+    frames: int = 0
+    echoes: int = 0  # received copies of our own frames left out
+    out_of_order: int = 0  # frames earlier than their channel's previous one (written in file order)
+    warnings: list[str] = field(default_factory=list)  # the reader's, once each
+
+    def warn(self, warnings: Iterable[str]) -> None:
+        self.warnings.extend(w for w in warnings if w not in self.warnings)
+
+
+def _survey_frames(path: Path, result: FrameExport) -> tuple[dict[str, set[int]], int | None, dict[str, Any]]:
+    """Pass 1: per channel the ids we sent, the first timestamp, the log's metadata."""
+    names = ("timestamp_ns", "arbitration_id", "direction")
+    tx_ids: dict[str, set[int]] = {TOPIC_CAN: set(), TOPIC_CAN_FD: set()}
+    first: list[int] = []
+    with open_stream(path, {TOPIC_CAN: names, TOPIC_CAN_FD: names}, events=False) as stream:
+        for blocks in stream.blocks():
+            for topic, block in ((TOPIC_CAN, blocks.frames), (TOPIC_CAN_FD, blocks.fd_frames)):
+                if len(block):
+                    tx_ids[topic].update(
+                        np.unique(block["arbitration_id"][block["direction"] == CAN_TX]).tolist()
+                    )
+                    first.append(int(block["timestamp_ns"].min()))
+        result.warn(stream.warnings)
+        metadata = stream.header().metadata
+    return tx_ids, (min(first) if first else None), metadata
+
+
+def _channel_rows(
+    path: Path, topic: str, tx_ids: set[int], offset_ns: int, result: FrameExport
+) -> Iterator[tuple[Any, ...]]:
+    """Pass 2, one channel: its frames without our echoes, as rows with wall-clock timestamps."""
+    ids = np.asarray(sorted(tx_ids), dtype=np.int64)
+    last_ns: int | None = None
+    with open_stream(path, {topic: None}, events=False) as stream:
+        for blocks in stream.blocks():
+            block = blocks.frames if topic == TOPIC_CAN else blocks.fd_frames
+            echo = (block["direction"] != CAN_TX) & np.isin(block["arbitration_id"], ids)
+            result.echoes += int(np.count_nonzero(echo))
+            kept = block[~echo]
+            if len(kept) == 0:
+                continue
+            t = kept["timestamp_ns"].astype(np.int64)
+            start = np.asarray([last_ns if last_ns is not None else t[0]], dtype=np.int64)
+            result.out_of_order += int(np.count_nonzero(np.diff(np.concatenate([start, t])) < 0))
+            last_ns = max(int(t.max()), last_ns if last_ns is not None else int(t[0]))
+            columns = [kept[name].tolist() for name in _FRAME_FIELDS[1:]]
+            yield from zip((t + offset_ns).tolist(), *columns, strict=True)
+        result.warn(stream.warnings)
+
+
+def export_log_frames(path: Path, out: Path, fmt: str) -> FrameExport:
+    """Stream every frame of the log at ``path`` into ``out`` (module docstring)."""
+    result = FrameExport()
+    tx_ids, first_ns, metadata = _survey_frames(path, result)
+    offset_ns = wall_offset_ns(metadata, first_ns)
+    classic = _channel_rows(path, TOPIC_CAN, tx_ids[TOPIC_CAN], offset_ns, result)
+    fd = _channel_rows(path, TOPIC_CAN_FD, tx_ids[TOPIC_CAN_FD], offset_ns, result)
+    rows = heapq.merge(classic, fd, key=lambda row: row[0])  # classic first on a tie
+    result.frames = write_messages((message_of_row(row, None) for row in rows), out, fmt)
+    return result
+
+
+def write_log_samples_csv(path: Path, out: Path) -> tuple[int, list[str]]:
+    """Stream the samples of the log at ``path`` into ``out`` as CSV; (rows, the reader's warnings)."""
+    with open_stream(path, {TOPIC_SAMPLE: None}, events=False) as stream:
+        empty = stream.header().samples  # its layout: the header of a log without samples
+        n = write_samples_csv(chain([empty], (blocks.samples for blocks in stream.blocks())), out)
+        return n, list(stream.warnings)
 
 
 def scalar_columns(samples: StructArray) -> list[tuple[str, npt.NDArray[np.generic]]]:
@@ -109,16 +179,24 @@ def _formatted(values: npt.NDArray[np.generic]) -> list[str]:
     return [str(v) for v in values.tolist()]
 
 
-def write_samples_csv(samples: StructArray, path: Path) -> int:
-    """Write the samples as CSV (module docstring); returns the row count."""
-    columns = scalar_columns(samples)
+def write_samples_csv(samples: StructArray | Iterable[StructArray], path: Path) -> int:
+    """Write the samples (one array, or blocks of them) as CSV (module docstring); returns the
+    row count. Blocks are written as they come: memory is bounded by a block."""
+    blocks: Iterable[StructArray] = [samples] if isinstance(samples, np.ndarray) else samples
+    n = 0
     try:
         with path.open("w", encoding="utf-8", newline="") as f:
-            f.write(",".join(name for name, _ in columns) + "\n")
-            for start in range(0, len(samples), ROWS_PER_BLOCK):
-                stop = start + ROWS_PER_BLOCK
-                texts = [_formatted(values[start:stop]) for _, values in columns]
-                f.write("".join(",".join(row) + "\n" for row in zip(*texts, strict=True)))
+            header = False
+            for block in blocks:
+                columns = scalar_columns(block)
+                if not header:
+                    f.write(",".join(name for name, _ in columns) + "\n")
+                    header = True
+                for start in range(0, len(block), ROWS_PER_BLOCK):
+                    stop = start + ROWS_PER_BLOCK
+                    texts = [_formatted(values[start:stop]) for _, values in columns]
+                    f.write("".join(",".join(row) + "\n" for row in zip(*texts, strict=True)))
+                n += len(block)
     except OSError as exc:
         raise ExportError(f"{path}: cannot write: {exc}") from exc
-    return len(samples)
+    return n

@@ -28,7 +28,8 @@ def merged_order(frames: StructArray, fd_frames: StructArray) -> tuple[npt.NDArr
     return np.argsort(ts, kind="stable").astype(np.int64), len(frames)
 
 
-def _message(row: Any, channel: int | str | None) -> can.Message:
+def message_of_row(row: Any, channel: int | str | None) -> can.Message:
+    """A ``can.Message`` of one frame row (timestamp_ns, id, direction, dlc, flags, data)."""
     ts_ns, arbitration_id, direction, dlc, flags, data = row
     remote = bool(flags & CAN_FLAG_REMOTE)
     fd = bool(flags & CAN_FLAG_FD)
@@ -60,7 +61,7 @@ def frame_messages(
         classic = iter(_rows(frames, block[~is_fd]))
         extra = iter(_rows(fd, block[is_fd] - n_classic))
         for from_fd in is_fd.tolist():
-            yield _message(next(extra) if from_fd else next(classic), channel)
+            yield message_of_row(next(extra) if from_fd else next(classic), channel)
 
 
 def _rows(source: StructArray, rows: npt.NDArray[np.int64]) -> list[tuple[Any, ...]]:

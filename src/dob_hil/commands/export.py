@@ -16,10 +16,9 @@ from dob_hil.errors import ConfigError
 
 
 def main(args: argparse.Namespace) -> int:
-    from dob_hil.analysis.export import default_export_path, export_frames, write_frames, write_samples_csv
-    from dob_hil.log import read_log
-    from dob_hil.log.schemas import TOPIC_CAN, TOPIC_CAN_FD, TOPIC_SAMPLE
-    from dob_hil.log.wallclock import wall_offset_ns
+    """Export streamed (:mod:`dob_hil.analysis.export`): bounded memory for a log of any length."""
+    from dob_hil.analysis.export import default_export_path, export_log_frames, write_log_samples_csv
+    from dob_hil.log.stream import return_large_buffers_to_the_os
 
     if args.samples and args.format != "csv":
         raise ConfigError("--samples", f"samples are exported as csv only, not {args.format}")
@@ -27,17 +26,23 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else default_export_path(log_path, args.format, args.samples)
     if out.resolve() == log_path.resolve():
         raise ConfigError("--out", f"{out} is the log itself")
-    data = read_log(log_path, topics=(TOPIC_SAMPLE,) if args.samples else (TOPIC_CAN, TOPIC_CAN_FD))
-    for warning in data.warnings:
-        print(f"dob-hil export: warning: {log_path}: {warning}", file=sys.stderr)
+    return_large_buffers_to_the_os()
     if args.samples:
-        n = write_samples_csv(data.samples, out)
+        n, warnings = write_log_samples_csv(log_path, out)
+        _warn(log_path, warnings)
         print(f"{out}: {n} samples")
-    else:
-        starts = [int(a["timestamp_ns"].min()) for a in (data.frames, data.fd_frames) if len(a)]
-        offset_ns = wall_offset_ns(data.metadata, min(starts) if starts else None)
-        frames, fd_frames, echoes = export_frames(data.frames, data.fd_frames, wall_offset_ns=offset_ns)
-        n = write_frames(frames, fd_frames, out, args.format)
-        dropped = f", {echoes} received copies of own frames left out" if echoes else ""
-        print(f"{out}: {n} frames ({args.format}){dropped}")
+        return 0
+    result = export_log_frames(log_path, out, args.format)
+    if result.out_of_order:
+        result.warnings.append(
+            f"{result.out_of_order} frames earlier than their channel's previous one, written in file order"
+        )
+    _warn(log_path, result.warnings)
+    dropped = f", {result.echoes} received copies of own frames left out" if result.echoes else ""
+    print(f"{out}: {result.frames} frames ({args.format}){dropped}")
     return 0
+
+
+def _warn(log_path: Path, warnings: list[str]) -> None:
+    for warning in warnings:
+        print(f"dob-hil export: warning: {log_path}: {warning}", file=sys.stderr)
