@@ -37,11 +37,14 @@ class SimulatedCia402Drive(ClockedDrive[Cia402Lockstep, Cia402Realtime]):
         *,
         clock: ClockKind = "lockstep",
         truth_sink: TruthSink | None = None,
+        fast_path: bool = True,
     ) -> None:
+        """``fast_path=False``: the lockstep clock takes the general path for every frame (tests
+        compare it with the fused period of :mod:`firmware_sim.cia402.fast`)."""
         self.config = config
         self.clock: ClockKind = clock
         if clock == "lockstep":
-            self._lockstep = Cia402Lockstep(bus, config, truth_sink)
+            self._lockstep = Cia402Lockstep(bus, config, truth_sink, fast_path=fast_path)
             self._core, self._lock = self._lockstep.core, self._lockstep.lock
         elif clock == "realtime":
             self._realtime = Cia402Realtime(bus, config, truth_sink)
