@@ -56,12 +56,6 @@ _CW_ENABLE_OPERATION = 0x000F  # the command bits of "enable operation" (power._
 _I32_MIN, _I32_MAX = -(2**31), 2**31 - 1
 
 
-def stays_enabled(controlword: int) -> bool:
-    """Taking ``controlword`` again in OPERATION ENABLED changes nothing: a fault reset word (bit
-    7: no command is taken) or "enable operation" (no transition out of OPERATION ENABLED)."""
-    return bool(controlword & CW_FAULT_RESET) or controlword & _CW_ENABLE_OPERATION == _CW_ENABLE_OPERATION
-
-
 @dataclass(frozen=True, slots=True)
 class FastPlan:
     """What the fused period needs from the drive's settings (valid until a general-path frame)."""
@@ -138,7 +132,11 @@ class FastPeriod:
         if (
             power.state is not _OE
             or controlword != power.controlword
-            or not stays_enabled(controlword)
+            # taken again in OPERATION ENABLED it changes nothing: a fault reset word (bit 7: no
+            # command is taken) or "enable operation" (no transition out of OPERATION ENABLED)
+            or not (
+                controlword & CW_FAULT_RESET or controlword & _CW_ENABLE_OPERATION == _CW_ENABLE_OPERATION
+            )
             or len(data) != plan.sync_len
             or core._pending
         ):
@@ -209,7 +207,9 @@ class FastPeriod:
             stats.tpdos_lost += 1
         else:
             try:
-                self.bus.send(can.Message(arbitration_id=plan.tpdo_id, is_extended_id=False, data=payload))
+                # positional: (timestamp, arbitration_id, is_extended_id, is_remote_frame,
+                # is_error_frame, channel, dlc, data), as canopen's Network.send_message builds it
+                self.bus.send(can.Message(0.0, plan.tpdo_id, False, False, False, None, None, payload))
             except can.CanError:
                 core.network.send_failures += 1
             stats.tpdos_sent += 1
