@@ -8,6 +8,11 @@ nothing pending and from a helper thread (a lock serialises callers), so a host 
 blocks can keep the drive serviced while it configures it. :meth:`advance_period` lets one
 period pass without a SYNC. TPDO loss (``sim.loss_probability``, seeded) applies; latency and
 jitter need a wall clock and are ignored, as in the native lockstep drive.
+
+In the cyclic phase the RPDO and SYNC of a period take one fused call
+(:mod:`firmware_sim.cia402.fast`, the TPDO sent straight on the bus as a python-can Message)
+where nothing unusual can happen; every other frame, and the rest of the period after one,
+takes the general path (``Cia402Core.on_frame``). Both give the same frames, truth and state.
 """
 
 from __future__ import annotations
