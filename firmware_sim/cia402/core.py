@@ -105,6 +105,7 @@ class Cia402Core:
         self.lockstep = lockstep
         self.want_truth = want_truth
         self.node_id = drive.node_id
+        self.sdo_rx_id = SDO_RX_BASE + drive.node_id
         self.watchdog_periods = drive.watchdog_periods
         self.plant_period_ns = plant.period_ns
         extra = max(0, plant.input_delay_samples - PROTOCOL_DELAY_SAMPLES)
@@ -328,6 +329,11 @@ class Cia402Core:
         self._last_sync_ns = t
         self._missed_sync = 0
         self._injected_faults()
+        self._sync_tail(t, counter)
+
+    def _sync_tail(self, t: int, counter: int | None) -> None:
+        """A SYNC at ``t`` once the physics is there: RPDO watchdog, sample, TPDOs, pending values,
+        truth, heartbeat."""
         if self._watch_armed and self.power.torque_allowed:
             if self._rpdo_since_sync:
                 self._missed_rpdo = 0
@@ -491,6 +497,13 @@ class Cia402Core:
                 continue
             self._tpdo_last[i] = payload
             self._tpdos.append((lay.cob_id, payload))
+
+    def take_rpdo(self, layout: Layout, values: tuple[int, ...], count: int) -> None:
+        """``count`` synchronous RPDOs of ``layout`` received, the last carrying ``values`` (what
+        :meth:`on_frame` does for each, the lockstep fast path's deferred share)."""
+        self.stats.rpdos += count
+        self._rpdo_since_sync = True
+        self._pending.update(zip(layout.objects, values, strict=True))
 
     def take_tpdos(self) -> list[tuple[int, bytes]]:
         out, self._tpdos = self._tpdos, []

@@ -18,6 +18,8 @@ The drive does not own the bus: :meth:`close` stops the drive, the caller shuts 
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Callable
 
 import can
 
@@ -37,11 +39,14 @@ class SimulatedCia402Drive(ClockedDrive[Cia402Lockstep, Cia402Realtime]):
         *,
         clock: ClockKind = "lockstep",
         truth_sink: TruthSink | None = None,
+        fast_path: bool = True,
     ) -> None:
+        """``fast_path=False``: the lockstep clock takes the general path for every frame (tests
+        compare it with the fused period of :mod:`firmware_sim.cia402.fast`)."""
         self.config = config
         self.clock: ClockKind = clock
         if clock == "lockstep":
-            self._lockstep = Cia402Lockstep(bus, config, truth_sink)
+            self._lockstep = Cia402Lockstep(bus, config, truth_sink, fast_path=fast_path)
             self._core, self._lock = self._lockstep.core, self._lockstep.lock
         elif clock == "realtime":
             self._realtime = Cia402Realtime(bus, config, truth_sink)
@@ -75,6 +80,11 @@ class SimulatedCia402Drive(ClockedDrive[Cia402Lockstep, Cia402Realtime]):
     def period_index(self) -> int:
         with self._lock:
             return self._core.period_index
+
+    def lockstep_period_index(self) -> Callable[[], int]:
+        """Lockstep: a cheap reader of :attr:`period_index` (no property, no lock: the lockstep
+        runner calls it every sample, in the only thread that services the drive then)."""
+        return functools.partial(getattr, self._need_lockstep("lockstep_period_index").core, "period_index")
 
     @property
     def time_ns(self) -> int:

@@ -37,6 +37,7 @@ Sample k's answer is the position at trigger k; its command acts from trigger k 
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from typing import Protocol
@@ -73,6 +74,16 @@ def _log_gap(log: LoopLog, time_ns: int, k: int, count: int) -> None:
               {"first_sample": k - count, "count": count})  # fmt: skip
 
 
+def _period_index_reader(drive: LockstepDrive) -> Callable[[], int]:
+    """The drive's ``lockstep_period_index()`` reader where it offers one (no property per sample),
+    else a reader of its ``period_index`` property."""
+    reader = getattr(drive, "lockstep_period_index", None)
+    if reader is not None:
+        read: Callable[[], int] = reader()
+        return read
+    return functools.partial(getattr, drive, "period_index")
+
+
 def run_host_clocked_lockstep(
     cycle: ControlCycle,
     link: HostClockedLink,
@@ -86,6 +97,7 @@ def run_host_clocked_lockstep(
     period_ns = limits.period_ns
     trigger, service, receive = link.send_trigger, drive.service, link.receive_feedback
     on_feedback, on_missing = cycle.on_feedback, cycle.on_missing
+    period_index = _period_index_reader(drive)
     missing_run = 0
     for k in range(limits.n_samples):
         reason = stop.requested
@@ -93,7 +105,7 @@ def run_host_clocked_lockstep(
             return reason
         trigger()
         service()
-        if drive.period_index < k:  # the trigger never reached the drive: its time runs on
+        if period_index() < k:  # the trigger never reached the drive: its time runs on
             drive.advance_period()
         fb = receive(0)
         time_ns = k * period_ns
