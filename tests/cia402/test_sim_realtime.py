@@ -46,8 +46,10 @@ def _enable_over_sdo(node: canopen.BaseNode402) -> None:
 
 
 def test_realtime_drive_follows_the_masters_sync_and_faults_when_it_stops() -> None:
-    # patient watchdogs: 200 periods (SYNC every 1 ms here; a loaded machine stalls for milliseconds)
-    config = make_config(drive={"watchdog_periods": 200})
+    # patient watchdogs: 1000 periods (SYNC every 1 ms here, from canopen's producer thread, which a
+    # loaded machine has been seen to stall for more than 200 ms); the trip after the SYNC stops
+    # then takes a second, well inside TIMEOUT_S
+    config = make_config(drive={"watchdog_periods": 1000})
     channel = unique_channel()
     bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     network = canopen.Network()
