@@ -107,6 +107,8 @@ _STATUS_RESERVED: Final = protocol.STATUS_RESERVED_MASK
 _ENABLED: Final = int(Status.ENABLED)
 _FAULT: Final = int(Status.FAULT)
 _SATURATED: Final = int(Status.SATURATED)
+_ENABLED_SATURATED: Final = _ENABLED | _SATURATED
+_STATE_ENABLED: Final = DriveState.ENABLED
 _INF: Final = math.inf
 _new_tuple: Final = tuple.__new__
 
@@ -409,6 +411,45 @@ class NativeDriveLink(ClosingLink):
             if msg.arbitration_id == feedback_id and not (
                 msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
             ):
+                data = msg.data
+                if len(data) == _FEEDBACK_DLC:
+                    # _on_feedback's common case, inline (the per-period path): the next sequence
+                    # number of an ENABLED drive, status ENABLED (and SATURATED) only, no enable
+                    # attempt under way, a plausible encoder step; the same effects and result
+                    raw_counts, seq, status = _FEEDBACK_STRUCT.unpack(data)
+                    last_seq = self._last_seq
+                    unwrap = self._unwrapper
+                    last = unwrap._last
+                    if (
+                        status | _SATURATED == _ENABLED_SATURATED  # ENABLED, maybe SATURATED, no other bit
+                        and last_seq is not None
+                        and (seq - last_seq) & 0xFF == 1
+                        and last is not None
+                        and self._state is _STATE_ENABLED
+                        and not self._resync
+                        and self._enable_attempt_faults < 0
+                    ):
+                        half = unwrap._half
+                        step = ((raw_counts - last + half) & unwrap._mask) - half  # update_step
+                        max_step = self._max_counts_step
+                        if -max_step <= step <= max_step:
+                            self._last_seq = seq
+                            unwrap._last = raw_counts
+                            unwrap._position = counts = unwrap._position + step
+                            self.stats.feedback += 1
+                            return _new_tuple(
+                                Feedback,
+                                (
+                                    now_ns,
+                                    seq,
+                                    (raw_counts,),
+                                    (counts,),
+                                    (counts / self._counts_per_unit,),
+                                    True,
+                                    False,
+                                    status != _ENABLED,
+                                ),
+                            )
                 feedback = self._on_feedback(msg, now_ns)
             else:
                 feedback = self._dispatch(msg, now_ns)

@@ -557,6 +557,50 @@ class LogWriter:
         self._seq_truth = n + 1
         self._append(record)
 
+    def truth_hook(self) -> Callable[[tuple[Any, ...]], None]:
+        """A ground-truth sink for a simulated drive: takes its truth tuple ``(period_index,
+        time_ns, state, disturbance_A, applied_current_A, drive_state)`` (firmware_sim's
+        ``GroundTruth``: one float each; a multi-axis drive's: a tuple per input) and logs it as
+        :meth:`truth` does, the single-axis record built in this one call (the per-period path).
+        A subclass that overrides :meth:`truth`, another thread, and anything that does not pack
+        go through :meth:`truth` (which names what did not pack)."""
+        truth = self.truth
+
+        def general(t: tuple[Any, ...]) -> None:
+            period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+            if type(disturbance_A) is tuple:  # a multi-axis drive: one value per input already
+                truth(time_ns, state, disturbance_A, applied_A, period_index, drive_state)
+            else:
+                truth(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
+
+        if type(self).truth is not LogWriter.truth:
+            return general
+        pack = self._pack_truth
+        length = self._truth_len
+
+        def hook(t: tuple[Any, ...]) -> None:
+            period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+            if type(disturbance_A) is tuple or _get_ident() != self._owner:
+                general(t)
+                return
+            n = self._seq_truth
+            try:
+                record = pack(
+                    OP_MESSAGE, length, CH_TRUTH, n & _U32, time_ns, time_ns, CDR_HEADER_U32,
+                    time_ns, *state, disturbance_A, applied_A, period_index, drive_state,
+                )  # fmt: skip
+            except struct.error:
+                general(t)  # truth names what did not pack
+                return
+            self._seq_truth = n + 1
+            b = self._batch
+            b += record
+            self._batch_records += 1
+            if len(b) >= self._batch_bytes:
+                self._push()
+
+        return hook
+
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
     ) -> None:
