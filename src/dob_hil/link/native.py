@@ -157,9 +157,10 @@ class DacQuantizer:
     ``drive.dac_lsb_A`` or ``drive.current_limit_A`` for values the protocol cannot carry.
     """
 
-    __slots__ = ("_limit_code", "_lsb_A", "_round_limit")
+    __slots__ = ("_limit_code", "_lsb_A", "_on_nonfinite", "_round_limit")
 
-    def __init__(self, drive: DriveConfig) -> None:
+    def __init__(self, drive: DriveConfig, on_nonfinite: Callable[[float], None] | None = None) -> None:
+        """``on_nonfinite(u)``: called with each non-finite current before it is replaced by 0 A."""
         if not drive.dac_lsb_A > 0.0 or not math.isfinite(drive.dac_lsb_A):
             raise ConfigError("drive.dac_lsb_A", f"must be a finite number > 0, got {drive.dac_lsb_A}")
         if not 0.0 < drive.current_limit_A < math.inf:
@@ -178,6 +179,7 @@ class DacQuantizer:
         self._lsb_A = drive.dac_lsb_A
         self._limit_code = limit_code
         self._round_limit = limit_code + 0.5  # |u / lsb| at or above this rounds beyond the limit
+        self._on_nonfinite = on_nonfinite
 
     @property
     def dac_lsb_A(self) -> float:
@@ -199,6 +201,8 @@ class DacQuantizer:
             raise ProtocolError(f"current_A: the native profile drives 1 axis, got {len(current_A)} currents")
         u = current_A[0]
         if not -_INF < u < _INF:
+            if self._on_nonfinite is not None:
+                self._on_nonfinite(u)
             return (0,), (0.0,), True
         x = u / self._lsb_A
         if x >= self._round_limit:
@@ -247,7 +251,7 @@ class NativeDriveLink(ClosingLink):
             raise ConfigError(
                 "drive.profile", f"NativeDriveLink drives the native profile, got {drive.profile!r}"
             )
-        quantizer = DacQuantizer(drive)
+        quantizer = DacQuantizer(drive, on_nonfinite=self._nonfinite_current)
         self._clear_fault_first = drive.clear_fault
         if not drive.encoder_counts_per_unit > 0.0:
             raise ConfigError(
@@ -282,6 +286,7 @@ class NativeDriveLink(ClosingLink):
 
         self._quantizer = quantizer
         self._quantize = quantizer.quantize
+        self.quantize = quantizer.quantize  # type: ignore[method-assign]  # (see quantize)
         self._lsb_A = quantizer.dac_lsb_A
         self._limit_code = quantizer.limit_code
         self._counts_per_unit = drive.encoder_counts_per_unit
@@ -669,17 +674,19 @@ class NativeDriveLink(ClosingLink):
     # --- quantizing and sending --------------------------------------------------------------------
     def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
         """((code,), (code * dac_lsb_A,), saturated): :meth:`DacQuantizer.quantize`, plus an
-        INVALID_COMMAND event (and ``stats.nonfinite_currents``) for a non-finite current."""
-        result = self._quantize(current_A)
-        if result[0][0] == 0 and result[2]:  # only a non-finite current gives code 0 and saturated
-            u = current_A[0]
-            self.stats.nonfinite_currents += 1
-            self._event(
-                self._clock_ns(),
-                LinkEventKind.INVALID_COMMAND,
-                f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
-            )
-        return result
+        INVALID_COMMAND event (and ``stats.nonfinite_currents``) for a non-finite current.
+
+        (An instance's ``quantize`` is its quantizer's own method, bound in ``__init__``, which
+        reports a non-finite current to :meth:`_nonfinite_current`: one call per period.)"""
+        return self._quantize(current_A)
+
+    def _nonfinite_current(self, u: float) -> None:
+        self.stats.nonfinite_currents += 1
+        self._event(
+            self._clock_ns(),
+            LinkEventKind.INVALID_COMMAND,
+            f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
+        )
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns()

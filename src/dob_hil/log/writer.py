@@ -30,6 +30,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import functools
 import json
 import os
 import select
@@ -50,6 +51,7 @@ import dob_hil
 from dob_hil.errors import LogWriteError
 from dob_hil.log import pipe
 from dob_hil.log.metadata import log_format_metadata, versions_metadata
+from dob_hil.log.packers import compile_sample
 from dob_hil.log.schemas import (
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
@@ -168,6 +170,14 @@ class LogWriter:
         self._can_len = record_length(can_fields(CAN_DATA_BYTES))
         self._can_fd_len = record_length(can_fields(CAN_FD_DATA_BYTES))
         self._truth_len = record_length(self._truth_fields)
+        if type(self).sample is LogWriter.sample:  # the same method, generated for the layout
+            self.sample = compile_sample(  # type: ignore[method-assign]
+                self,
+                self._sample_fields,
+                self._pack_sample,
+                self._sample_len,
+                functools.partial(LogWriter.sample, self),
+            )
         # next MCAP sequence number per channel (each channel is written by one thread; events
         # from any thread take the lock)
         self._seq_sample = 0
