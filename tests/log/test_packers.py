@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import os
 import random
+import re
 import threading
 
 import numpy as np
@@ -91,3 +92,12 @@ def test_a_subclass_keeps_its_own_sample() -> None:
         assert "sample" not in vars(log)
         log.sample(1, 2)
         assert log.got == (1, 2)
+
+
+def test_the_generated_source_is_built_from_dimensions_only() -> None:
+    """Identifiers and array indices only: no value of any record or config is turned into code."""
+    with LogWriter(os.devnull, LogLayout(3, 1, 1, 2)) as log:
+        source: str = log.sample.source  # type: ignore[attr-defined]
+    assert "x_ref_0, x_ref_1, x_ref_2, = x_ref" in source
+    for literal in re.findall(r"(?<![\w.])\d[\w.]*", source):
+        assert literal == "1"  # only the record counter's "+ 1"; every other number is bound

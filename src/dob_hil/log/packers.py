@@ -8,7 +8,8 @@ plain positional arguments: the same record, byte for byte. As in :mod:`dob_hil.
 the source is built from the *dimensions and field names only* (identifiers such as
 ``x_ref_1``); every object it uses enters as a default argument, so no data from a config or a
 log is ever turned into code. Anything unusual (an array of another length, a value that does not
-pack) goes to the general method, which packs it or raises the error naming the field.
+pack) goes to the general method, which packs it or raises the error naming the field. The
+source is run by :func:`dob_hil.control.step.run_generated`, the source tree's one ``exec``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
+from dob_hil.control.step import run_generated
 from dob_hil.log.schemas import CDR_HEADER_U32, CH_SAMPLE, OP_MESSAGE, Field
 
 _U32 = 0xFFFFFFFF
@@ -100,6 +102,7 @@ def compile_sample(
         "_CDR": CDR_HEADER_U32,
         "_StructError": struct.error,
     }
-    exec(compile(source, "<dob_hil.log.packers generated>", "exec"), namespace)
+    run_generated(source, "<dob_hil.log.packers generated>", namespace)
     fn: Callable[..., None] = namespace["sample"]
+    fn.source = source  # type: ignore[attr-defined]  # for inspection (tests)
     return fn
