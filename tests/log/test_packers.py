@@ -101,3 +101,21 @@ def test_the_generated_source_is_built_from_dimensions_only() -> None:
     assert "x_ref_0, x_ref_1, x_ref_2, = x_ref" in source
     for literal in re.findall(r"(?<![\w.])\d[\w.]*", source):
         assert literal == "1"  # only the record counter's "+ 1"; every other number is bound
+
+
+@pytest.mark.parametrize("n_plant_states", [1, 2, 4])
+def test_truth_hook_writes_what_truth_writes(n_plant_states: int) -> None:
+    layout = LogLayout(2, 1, 1, n_plant_states)
+    rng = random.Random(n_plant_states)
+    with LogWriter(os.devnull, layout) as fast, LogWriter(os.devnull, layout) as general:
+        hook = fast.truth_hook()
+        assert "state_0" in hook.source  # type: ignore[attr-defined]  # the generated hook
+        for k in range(100):
+            state = tuple(rng.uniform(-5.0, 5.0) for _ in range(n_plant_states))
+            d, a = rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)
+            hook((k, k * 300_000, state, d, a, 1))
+            general.truth(k * 300_000, state, (d,), (a,), k, 1)
+            assert bytes(fast._batch) == bytes(general._batch)
+        with pytest.raises(LogWriteError, match=r"truth\.state: expected"):
+            hook((0, 0, (1.0,) * (n_plant_states + 1), 0.0, 0.0, 1))
+        assert fast._seq_truth == 100

@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from dob_hil.control.step import run_generated
-from dob_hil.log.schemas import CDR_HEADER_U32, CH_SAMPLE, OP_MESSAGE, Field
+from dob_hil.log.schemas import CDR_HEADER_U32, CH_SAMPLE, CH_TRUTH, OP_MESSAGE, Field
 
 _U32 = 0xFFFFFFFF
 
@@ -29,6 +29,7 @@ class _Batching(Protocol):
     """The writer state the generated method updates (LogWriter's owner-thread batch)."""
 
     _seq_sample: int
+    _seq_truth: int
     _owner: int
     _batch: bytearray
     _batch_records: int
@@ -80,16 +81,65 @@ def compile_sample(
         "    except (ValueError, TypeError, _StructError):\n"
         f"        return _general({params})\n"
         "    _w._seq_sample = n + 1\n"
-        "    if _get_ident() == _w._owner:\n"
-        "        batch = _w._batch\n"
-        "        batch += record\n"
-        "        _w._batch_records += 1\n"
-        "        if len(batch) >= _w._batch_bytes:\n"
-        "            _w._push()\n"
-        "    else:\n"
+        "    if _get_ident() == _w._owner:\n" + _append("        ") + "    else:\n"
         "        _w._foreign.append(record)\n"
         "    return None\n"
     )
+    return _define("sample", source, writer, pack, length, CH_SAMPLE, general)
+
+
+def _append(indent: str) -> str:
+    """The owner thread's append of ``record`` to the batch (LogWriter._append, inline)."""
+    lines = (
+        "batch = _w._batch",
+        "batch += record",
+        "_w._batch_records += 1",
+        "if len(batch) >= _w._batch_bytes:",
+        "    _w._push()",
+    )
+    return "".join(f"{indent}{line}\n" for line in lines)
+
+
+def compile_truth_hook(
+    writer: _Batching,
+    n_plant_states: int,
+    pack: Callable[..., bytes],
+    length: int,
+    general: Callable[[tuple[Any, ...]], None],
+) -> Callable[[tuple[Any, ...]], None]:
+    """``hook(truth)`` for a single-axis drive's ground truth ``(period_index, time_ns, state,
+    disturbance_A, applied_current_A, drive_state)`` with ``n_plant_states`` states: the truth
+    record packed by ``pack`` (record length ``length``) and appended to ``writer``'s batch in this
+    one call, as ``LogWriter.truth`` would; ``general(truth)`` takes a multi-axis drive's truth
+    (a tuple per input), another thread's, and anything that does not unpack or pack."""
+    names = [f"state_{i}" for i in range(n_plant_states)]
+    source = (
+        "def hook(t, _w=_w, _pack=_pack, _general=_general, _get_ident=_get_ident):\n"
+        "    period_index, time_ns, state, disturbance_A, applied_A, drive_state = t\n"
+        "    if type(disturbance_A) is tuple or _get_ident() != _w._owner:\n"
+        "        return _general(t)\n"
+        "    n = _w._seq_truth\n"
+        "    try:\n"
+        f"        {''.join(f'{v}, ' for v in names)}= state\n"
+        "        record = _pack(_OP, _LEN, _CH, n & _U32, time_ns, time_ns, _CDR, time_ns, "
+        + "".join(f"{v}, " for v in names)
+        + "disturbance_A, applied_A, period_index, drive_state)\n"
+        "    except (ValueError, TypeError, _StructError):\n"
+        "        return _general(t)\n"
+        "    _w._seq_truth = n + 1\n" + _append("    ") + "    return None\n"
+    )
+    return _define("hook", source, writer, pack, length, CH_TRUTH, general)
+
+
+def _define(
+    name: str,
+    source: str,
+    writer: _Batching,
+    pack: Callable[..., bytes],
+    length: int,
+    channel: int,
+    general: Callable[..., None],
+) -> Callable[..., None]:
     namespace: dict[str, Any] = {
         "_w": writer,
         "_pack": pack,
@@ -97,12 +147,12 @@ def compile_sample(
         "_get_ident": threading.get_ident,
         "_OP": OP_MESSAGE,
         "_LEN": length,
-        "_CH": CH_SAMPLE,
+        "_CH": channel,
         "_U32": _U32,
         "_CDR": CDR_HEADER_U32,
         "_StructError": struct.error,
     }
     run_generated(source, "<dob_hil.log.packers generated>", namespace)
-    fn: Callable[..., None] = namespace["sample"]
+    fn: Callable[..., None] = namespace[name]
     fn.source = source  # type: ignore[attr-defined]  # for inspection (tests)
     return fn

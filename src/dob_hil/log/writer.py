@@ -51,7 +51,7 @@ import dob_hil
 from dob_hil.errors import LogWriteError
 from dob_hil.log import pipe
 from dob_hil.log.metadata import log_format_metadata, versions_metadata
-from dob_hil.log.packers import compile_sample
+from dob_hil.log.packers import compile_sample, compile_truth_hook
 from dob_hil.log.schemas import (
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
@@ -585,31 +585,10 @@ class LogWriter:
 
         if type(self).truth is not LogWriter.truth:
             return general
-        pack = self._pack_truth
-        length = self._truth_len
-
-        def hook(t: tuple[Any, ...]) -> None:
-            period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
-            if type(disturbance_A) is tuple or _get_ident() != self._owner:
-                general(t)
-                return
-            n = self._seq_truth
-            try:
-                record = pack(
-                    OP_MESSAGE, length, CH_TRUTH, n & _U32, time_ns, time_ns, CDR_HEADER_U32,
-                    time_ns, *state, disturbance_A, applied_A, period_index, drive_state,
-                )  # fmt: skip
-            except struct.error:
-                general(t)  # truth names what did not pack
-                return
-            self._seq_truth = n + 1
-            b = self._batch
-            b += record
-            self._batch_records += 1
-            if len(b) >= self._batch_bytes:
-                self._push()
-
-        return hook
+        # generated for the plant's state count (dob_hil.log.packers): no starred argument
+        return compile_truth_hook(
+            self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
+        )
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
