@@ -24,6 +24,7 @@ import math
 import can
 
 from dob_hil.config import Config
+from dob_hil.link import base as _link_base  # noqa: F401  (its import checks can.Message's parameters)
 from dob_hil.link.protocol import COMMAND_SEQ_MODULO, SEQ_MODULO, DriveState, FaultCode, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import (
@@ -45,7 +46,7 @@ _COMMAND = FrameResult.COMMAND
 _ENABLED = DriveState.ENABLED
 _new_tuple = tuple.__new__
 _floor = math.floor
-_Message = can.Message
+_Message = can.Message  # built positionally: dob_hil.link.base.MESSAGE_LEADING_PARAMS
 
 
 class LockstepClock:
@@ -234,7 +235,9 @@ class LockstepClock:
         elif core.silent:
             stats.frames_suppressed += 1
         else:
-            self._bus_send(_Message(arbitration_id=self._feedback_id, data=payload, is_extended_id=False))
+            # positional: timestamp, id, extended, remote, error, channel, dlc (from data), data
+            # (dob_hil.link.base.MESSAGE_LEADING_PARAMS)
+            self._bus_send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
             stats.feedback_sent += 1
         sink = self.truth_sink
         if sink is not None and core.want_truth:
@@ -275,7 +278,7 @@ class LockstepClock:
         elif core.silent:
             core.stats.frames_suppressed += 1
         else:
-            self.bus.send(can.Message(arbitration_id=self._feedback_id, data=payload, is_extended_id=False))
+            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
             core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)

@@ -85,3 +85,19 @@ def test_delivered_feedback_matches_on_feedback() -> None:
     assert fast.stats.rx_frames == 5000
     assert fast.stats.encoder_jumps > 0 and fast.stats.stale_feedback > 0 and fast.stats.missed_feedback > 0
     assert delivered > 4000
+
+
+def test_positional_frames_equal_keyword_frames() -> None:
+    """The per-period paths build can.Message positionally (dob_hil.link.base checks the order at
+    import); such a frame is the keyword-built one in every attribute."""
+    import inspect
+
+    from dob_hil.link.base import MESSAGE_LEADING_PARAMS
+
+    assert tuple(inspect.signature(can.Message.__init__).parameters)[1:9] == MESSAGE_LEADING_PARAMS
+    data = bytes([1, 2, 3, 4, 5, 6])
+    a = can.Message(0.0, 0x181, False, False, False, None, None, data)
+    b = can.Message(arbitration_id=0x181, data=data, is_extended_id=False)
+    assert a.equals(b, timestamp_delta=None, check_channel=True, check_direction=True)
+    slots = [s for cls in type(a).__mro__ for s in getattr(cls, "__slots__", ())]
+    assert [getattr(a, s) for s in slots] == [getattr(b, s) for s in slots]

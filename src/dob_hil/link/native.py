@@ -111,6 +111,7 @@ _ENABLED_SATURATED: Final = _ENABLED | _SATURATED
 _STATE_ENABLED: Final = DriveState.ENABLED
 _INF: Final = math.inf
 _new_tuple: Final = tuple.__new__
+_Message: Final = can.Message
 
 _FAULT_INFO: Final = {
     FaultCode.WATCHDOG: "periods without a valid command",
@@ -721,7 +722,9 @@ class NativeDriveLink(ClosingLink):
         # (logging) comes after, outside the feedback-to-command path
         if self._closed:
             self._check_open()
-        msg = can.Message(arbitration_id=self._command_id, is_extended_id=False, data=payload)
+        # positional (dob_hil.link.base.MESSAGE_LEADING_PARAMS): timestamp, id, extended, remote,
+        # error, channel, dlc (from data), data
+        msg = _Message(0.0, self._command_id, False, False, False, None, None, payload)
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:
