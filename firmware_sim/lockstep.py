@@ -65,7 +65,6 @@ class LockstepClock:
         self._feedback_id = FrameKind.FEEDBACK + self.core.node_id
         self._node_id = self.core.node_id
         self._lossy = sim.loss_probability > 0.0  # FeedbackImpairment.lost() draws only then
-        self._bus_send = bus.send
         # :meth:`_exchange` (the whole commanded period in one call) where it applies; False: the
         # general path for every period (tests compare the two)
         self.fused = True
@@ -237,7 +236,7 @@ class LockstepClock:
         else:
             # positional: timestamp, id, extended, remote, error, channel, dlc (from data), data
             # (dob_hil.link.base.MESSAGE_LEADING_PARAMS)
-            self._bus_send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
+            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
             stats.feedback_sent += 1
         sink = self.truth_sink
         if sink is not None and core.want_truth:
