@@ -19,15 +19,34 @@ jitter have no meaning without a wall clock and are ignored.
 
 from __future__ import annotations
 
+import math
+
 import can
 
 from dob_hil.config import Config
-from dob_hil.link.protocol import DriveState, FrameKind
+from dob_hil.link import base as _link_base  # noqa: F401  (its import checks can.Message's parameters)
+from dob_hil.link.protocol import COMMAND_SEQ_MODULO, SEQ_MODULO, DriveState, FaultCode, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
-from firmware_sim.core import _COMMAND_DLC, _COMMAND_STRUCT, DriveCore, FrameResult, TruthSink
+from firmware_sim.core import (
+    _COMMAND_DLC,
+    _COMMAND_STRUCT,
+    _FEEDBACK_STRUCT,
+    _PADDING,
+    _ST_ENABLED,
+    _ST_ENABLED_SATURATED,
+    DriveCore,
+    FrameResult,
+    TruthSink,
+)
 from firmware_sim.impairments import FeedbackImpairment
+from firmware_sim.plant import DISTURBANCE_BLOCK
+from firmware_sim.truth import GroundTruth
 
 _COMMAND = FrameResult.COMMAND
+_ENABLED = DriveState.ENABLED
+_new_tuple = tuple.__new__
+_floor = math.floor
+_Message = can.Message  # built positionally: dob_hil.link.base.MESSAGE_LEADING_PARAMS
 
 
 class LockstepClock:
@@ -46,6 +65,9 @@ class LockstepClock:
         self._feedback_id = FrameKind.FEEDBACK + self.core.node_id
         self._node_id = self.core.node_id
         self._lossy = sim.loss_probability > 0.0  # FeedbackImpairment.lost() draws only then
+        # :meth:`_exchange` (the whole commanded period in one call) where it applies; False: the
+        # general path for every period (tests compare the two)
+        self.fused = True
 
     def service(self) -> int:
         """Act on the frames pending on the bus (non-blocking) until a COMMAND advances the period.
@@ -76,7 +98,10 @@ class LockstepClock:
                 data = msg.data
                 if len(data) == _COMMAND_DLC:  # DriveCore.on_frame's fast path, one call fewer
                     current_counts, tail = _COMMAND_STRUCT.unpack(data)
-                    # enabling: the command and the period in one call where it can (as _run_period)
+                    # enabling: the command, the period and the feedback in one call where it can
+                    if tail & 0x80 and self.fused and self._exchange(current_counts, tail & 0x7F):
+                        return n
+                    # else the command and the period in one call where it can (as _run_period)
                     if tail & 0x80 and core.lockstep_period(current_counts, tail & 0x7F):
                         if core._out:
                             self._send_outgoing()
@@ -109,6 +134,129 @@ class LockstepClock:
             else:
                 self._send_outgoing()
 
+    def _exchange(self, current_counts: int, seq7: int) -> bool:
+        """The common commanded period in one call: an enabling COMMAND (``current_counts``,
+        ``seq7``) acted on at :attr:`DriveCore.time_ns`, the period integrated, the FEEDBACK sent
+        and the truth handed on, with the same effects (bit for bit) as
+        :meth:`DriveCore.lockstep_period` + :meth:`_send_sample`, which spell out each step.
+
+        Only where :meth:`DriveCore.lockstep_period` applies and moreover the plant has two states
+        (the unrolled update) and the period starts on a cell boundary; otherwise False with
+        nothing changed, and the caller takes those paths. A plant position the encoder cannot
+        read hands the sample to :meth:`_send_sample` (the ENCODER fault)."""
+        core = self.core
+        last = core._samples - 1
+        s = last - ((last - core._seq_origin - seq7) % COMMAND_SEQ_MODULO)
+        plant = core.plant
+        m2 = plant._m2
+        t = core.time_ns
+        period_ns = core.period_ns
+        t_end = t + period_ns
+        if (
+            last < 0
+            or last - s >= core.accept_window
+            or s <= core._last_accepted
+            or core.machine.state is not _ENABLED
+            or core.faults is not None
+            or core.delay_ns
+            or core.path._times_ns  # a current change pending
+            or t_end >= core._next_heartbeat_ns
+            or not core._physics_ok
+            or m2 is None
+            or t % period_ns
+        ):
+            return False
+        # --- the COMMAND (DriveCore.lockstep_period) ----------------------------------------
+        core._last_accepted = s
+        stats = core.stats
+        stats.commands_accepted += 1
+        limit = core._dac_limit  # Dac.convert
+        code = limit if current_counts > limit else -limit if current_counts < -limit else current_counts
+        u = code * core._dac_lsb_A
+        core.saturated = saturated = code != current_counts
+        if saturated:
+            stats.saturations += 1
+        core.path.held_A = u
+        # --- the period's cells (PlantModel.advance -> _cells, the 2-state update) ---------------
+        p00, p01, p10, p11, g0, g1 = m2
+        x0, x1 = plant._x
+        substeps = plant.substeps
+        disturbance = plant._disturbance
+        try:
+            if disturbance.is_zero:
+                for _ in range(substeps):
+                    x0, x1 = p00 * x0 + p01 * x1 + g0 * u, p10 * x0 + p11 * x1 + g1 * u
+            else:
+                j0 = t // period_ns * substeps
+                block, o0 = divmod(j0, DISTURBANCE_BLOCK)
+                if block == plant._w_block_index and o0 + substeps <= DISTURBANCE_BLOCK:
+                    ws = plant._w_block[o0 : o0 + substeps]
+                else:
+                    ws = plant._w_cells(j0, j0 + substeps)
+                for w in ws:
+                    v = u + w
+                    x0, x1 = p00 * x0 + p01 * x1 + g0 * v, p10 * x0 + p11 * x1 + g1 * v
+        except (OverflowError, ValueError, FloatingPointError):  # as DriveCore.lockstep_period
+            core._physics_ok = False
+            core.fault(FaultCode.ENCODER, 0, core.time_ns)
+            core.time_ns = max(core.time_ns, t_end)
+            self._finish_period(core)
+            return True
+        plant._x = [x0, x1]
+        core.time_ns = t_end
+        watchdog = core.watchdog  # period_boundary(True): ENABLED, no heartbeat due
+        watchdog.armed = True
+        watchdog.missed = 0
+        # --- the sample (DriveCore.sample) --------------------------------------------------------
+        c = plant._c
+        position = c[0] * x0 + c[1] * x1  # PlantModel.position
+        if position - position != 0.0:  # not finite: the encoder faults (DriveCore.sample)
+            self._finish_period(core)
+            return True
+        encoder = core.encoder  # Encoder.read
+        counts = _floor(position * encoder.counts_per_unit + 0.5)
+        if encoder.noise_counts_std > 0.0:
+            counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
+        counts &= encoder._mask
+        if counts >= encoder._half:
+            counts -= encoder._span
+        n = core._samples
+        core._samples = n + 1
+        stats.samples += 1
+        payload = _FEEDBACK_STRUCT.pack(
+            counts, (n - core._seq_origin) % SEQ_MODULO, _ST_ENABLED_SATURATED if saturated else _ST_ENABLED
+        )
+        if core._pad:
+            payload += _PADDING[len(payload) :]
+        # --- sent, lost or suppressed (_send_sample) ------------------------------------------------
+        if self._lossy and self.impairment.lost():
+            stats.feedback_lost += 1
+        elif core.silent:
+            stats.frames_suppressed += 1
+        else:
+            # positional: timestamp, id, extended, remote, error, channel, dlc (from data), data
+            # (dob_hil.link.base.MESSAGE_LEADING_PARAMS)
+            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
+            stats.feedback_sent += 1
+        sink = self.truth_sink
+        if sink is not None and core.want_truth:
+            sink(
+                _new_tuple(
+                    GroundTruth,
+                    (t_end // period_ns, t_end, (x0, x1), disturbance.value_A(t_end * 1e-9), u, _ENABLED),
+                )
+            )
+        return True
+
+    def _finish_period(self, core: DriveCore) -> None:
+        """:meth:`_exchange` after a fault on the way: the rest of the period as the general path."""
+        if core.machine.state is DriveState.ENABLED:
+            core.watchdog.armed = True
+            core.watchdog.missed = 0
+        if core._out:
+            self._send_outgoing()
+        self._send_sample()
+
     def advance_period(self) -> None:
         """One period without a command, then the next FEEDBACK."""
         self._run_period(commanded=False)
@@ -129,7 +277,7 @@ class LockstepClock:
         elif core.silent:
             core.stats.frames_suppressed += 1
         else:
-            self.bus.send(can.Message(arbitration_id=self._feedback_id, data=payload, is_extended_id=False))
+            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
             core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)

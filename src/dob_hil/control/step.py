@@ -190,8 +190,16 @@ def compile_step(gains: Gains, dob_enabled: bool = True) -> StepFunctions:
     # The namespace holds only the coefficient floats (bound as defaults) and the result type.
     # (the StepOutput is made with tuple.__new__: NamedTuple's own __new__ is a Python call)
     namespace: dict[str, Any] = {"_Out": StepOutput, "_new": tuple.__new__, **coeffs}
-    exec(compile(source, "<dob_hil.control.step generated>", "exec"), namespace)
+    run_generated(source, "<dob_hil.control.step generated>", namespace)
     return StepFunctions(namespace["update"], namespace["predict"], n, m, p, source)
+
+
+def run_generated(source: str, filename: str, namespace: dict[str, Any]) -> None:
+    """Define the functions of generated ``source`` in ``namespace``: the source tree's one
+    ``exec``. Only for source built from dimensions and fixed identifiers, with every value
+    bound through ``namespace`` (this module's step; :mod:`dob_hil.log.packers`' record packing,
+    built from the log layout's field names and array sizes)."""
+    exec(compile(source, filename, "exec"), namespace)
 
 
 def numpy_step(

@@ -11,11 +11,26 @@ everything unusual (faults, malformed or foreign frames, error frames) to ``even
 from __future__ import annotations
 
 import enum
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import Final, NamedTuple, Protocol
 
 import can
+
+# can.Message's leading parameters, in this order: the per-period paths build their frames with
+# positional arguments, ``can.Message(0.0, arbitration_id, False, False, False, None, None, data)``
+# (keywords cost about 0.2 us more per frame). Checked here, at import, so that a python-can that
+# reorders them fails loudly instead of building wrong frames.
+MESSAGE_LEADING_PARAMS: Final = (
+    "timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "channel",
+    "dlc", "data",
+)  # fmt: skip
+if tuple(inspect.signature(can.Message.__init__).parameters)[1:9] != MESSAGE_LEADING_PARAMS:
+    raise RuntimeError(
+        f"python-can {can.__version__}: can.Message's leading parameters are no longer "
+        f"{', '.join(MESSAGE_LEADING_PARAMS)}; dob_hil builds frames positionally (dob_hil.link.base)"
+    )
 
 
 class LinkEventKind(enum.Enum):

@@ -107,8 +107,11 @@ _STATUS_RESERVED: Final = protocol.STATUS_RESERVED_MASK
 _ENABLED: Final = int(Status.ENABLED)
 _FAULT: Final = int(Status.FAULT)
 _SATURATED: Final = int(Status.SATURATED)
+_ENABLED_SATURATED: Final = _ENABLED | _SATURATED
+_STATE_ENABLED: Final = DriveState.ENABLED
 _INF: Final = math.inf
 _new_tuple: Final = tuple.__new__
+_Message: Final = can.Message
 
 _FAULT_INFO: Final = {
     FaultCode.WATCHDOG: "periods without a valid command",
@@ -155,9 +158,10 @@ class DacQuantizer:
     ``drive.dac_lsb_A`` or ``drive.current_limit_A`` for values the protocol cannot carry.
     """
 
-    __slots__ = ("_limit_code", "_lsb_A", "_round_limit")
+    __slots__ = ("_limit_code", "_lsb_A", "_on_nonfinite", "_round_limit")
 
-    def __init__(self, drive: DriveConfig) -> None:
+    def __init__(self, drive: DriveConfig, on_nonfinite: Callable[[float], None] | None = None) -> None:
+        """``on_nonfinite(u)``: called with each non-finite current before it is replaced by 0 A."""
         if not drive.dac_lsb_A > 0.0 or not math.isfinite(drive.dac_lsb_A):
             raise ConfigError("drive.dac_lsb_A", f"must be a finite number > 0, got {drive.dac_lsb_A}")
         if not 0.0 < drive.current_limit_A < math.inf:
@@ -176,6 +180,7 @@ class DacQuantizer:
         self._lsb_A = drive.dac_lsb_A
         self._limit_code = limit_code
         self._round_limit = limit_code + 0.5  # |u / lsb| at or above this rounds beyond the limit
+        self._on_nonfinite = on_nonfinite
 
     @property
     def dac_lsb_A(self) -> float:
@@ -197,6 +202,8 @@ class DacQuantizer:
             raise ProtocolError(f"current_A: the native profile drives 1 axis, got {len(current_A)} currents")
         u = current_A[0]
         if not -_INF < u < _INF:
+            if self._on_nonfinite is not None:
+                self._on_nonfinite(u)
             return (0,), (0.0,), True
         x = u / self._lsb_A
         if x >= self._round_limit:
@@ -245,7 +252,7 @@ class NativeDriveLink(ClosingLink):
             raise ConfigError(
                 "drive.profile", f"NativeDriveLink drives the native profile, got {drive.profile!r}"
             )
-        quantizer = DacQuantizer(drive)
+        quantizer = DacQuantizer(drive, on_nonfinite=self._nonfinite_current)
         self._clear_fault_first = drive.clear_fault
         if not drive.encoder_counts_per_unit > 0.0:
             raise ConfigError(
@@ -280,6 +287,7 @@ class NativeDriveLink(ClosingLink):
 
         self._quantizer = quantizer
         self._quantize = quantizer.quantize
+        self.quantize = quantizer.quantize  # type: ignore[method-assign]  # (see quantize)
         self._lsb_A = quantizer.dac_lsb_A
         self._limit_code = quantizer.limit_code
         self._counts_per_unit = drive.encoder_counts_per_unit
@@ -409,6 +417,45 @@ class NativeDriveLink(ClosingLink):
             if msg.arbitration_id == feedback_id and not (
                 msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame or msg.is_fd
             ):
+                data = msg.data
+                if len(data) == _FEEDBACK_DLC:
+                    # _on_feedback's common case, inline (the per-period path): the next sequence
+                    # number of an ENABLED drive, status ENABLED (and SATURATED) only, no enable
+                    # attempt under way, a plausible encoder step; the same effects and result
+                    raw_counts, seq, status = _FEEDBACK_STRUCT.unpack(data)
+                    last_seq = self._last_seq
+                    unwrap = self._unwrapper
+                    last = unwrap._last
+                    if (
+                        status | _SATURATED == _ENABLED_SATURATED  # ENABLED, maybe SATURATED, no other bit
+                        and last_seq is not None
+                        and (seq - last_seq) & 0xFF == 1
+                        and last is not None
+                        and self._state is _STATE_ENABLED
+                        and not self._resync
+                        and self._enable_attempt_faults < 0
+                    ):
+                        half = unwrap._half
+                        step = ((raw_counts - last + half) & unwrap._mask) - half  # update_step
+                        max_step = self._max_counts_step
+                        if -max_step <= step <= max_step:
+                            self._last_seq = seq
+                            unwrap._last = raw_counts
+                            unwrap._position = counts = unwrap._position + step
+                            self.stats.feedback += 1
+                            return _new_tuple(
+                                Feedback,
+                                (
+                                    now_ns,
+                                    seq,
+                                    (raw_counts,),
+                                    (counts,),
+                                    (counts / self._counts_per_unit,),
+                                    True,
+                                    False,
+                                    status != _ENABLED,
+                                ),
+                            )
                 feedback = self._on_feedback(msg, now_ns)
             else:
                 feedback = self._dispatch(msg, now_ns)
@@ -628,17 +675,19 @@ class NativeDriveLink(ClosingLink):
     # --- quantizing and sending --------------------------------------------------------------------
     def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
         """((code,), (code * dac_lsb_A,), saturated): :meth:`DacQuantizer.quantize`, plus an
-        INVALID_COMMAND event (and ``stats.nonfinite_currents``) for a non-finite current."""
-        result = self._quantize(current_A)
-        if result[0][0] == 0 and result[2]:  # only a non-finite current gives code 0 and saturated
-            u = current_A[0]
-            self.stats.nonfinite_currents += 1
-            self._event(
-                self._clock_ns(),
-                LinkEventKind.INVALID_COMMAND,
-                f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
-            )
-        return result
+        INVALID_COMMAND event (and ``stats.nonfinite_currents``) for a non-finite current.
+
+        (An instance's ``quantize`` is its quantizer's own method, bound in ``__init__``, which
+        reports a non-finite current to :meth:`_nonfinite_current`: one call per period.)"""
+        return self._quantize(current_A)
+
+    def _nonfinite_current(self, u: float) -> None:
+        self.stats.nonfinite_currents += 1
+        self._event(
+            self._clock_ns(),
+            LinkEventKind.INVALID_COMMAND,
+            f"node {self._node}: non-finite current {u!r} A requested; 0 A commanded instead",
+        )
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """Send one COMMAND answering feedback ``answers_seq`` (taken mod 128); returns clock_ns()
@@ -673,7 +722,9 @@ class NativeDriveLink(ClosingLink):
         # (logging) comes after, outside the feedback-to-command path
         if self._closed:
             self._check_open()
-        msg = can.Message(arbitration_id=self._command_id, is_extended_id=False, data=payload)
+        # positional (dob_hil.link.base.MESSAGE_LEADING_PARAMS): timestamp, id, extended, remote,
+        # error, channel, dlc (from data), data
+        msg = _Message(0.0, self._command_id, False, False, False, None, None, payload)
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import functools
 import json
 import os
 import select
@@ -50,6 +51,7 @@ import dob_hil
 from dob_hil.errors import LogWriteError
 from dob_hil.log import pipe
 from dob_hil.log.metadata import log_format_metadata, versions_metadata
+from dob_hil.log.packers import compile_sample, compile_truth_hook
 from dob_hil.log.schemas import (
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
@@ -168,6 +170,14 @@ class LogWriter:
         self._can_len = record_length(can_fields(CAN_DATA_BYTES))
         self._can_fd_len = record_length(can_fields(CAN_FD_DATA_BYTES))
         self._truth_len = record_length(self._truth_fields)
+        if type(self).sample is LogWriter.sample:  # the same method, generated for the layout
+            self.sample = compile_sample(  # type: ignore[method-assign]
+                self,
+                self._sample_fields,
+                self._pack_sample,
+                self._sample_len,
+                functools.partial(LogWriter.sample, self),
+            )
         # next MCAP sequence number per channel (each channel is written by one thread; events
         # from any thread take the lock)
         self._seq_sample = 0
@@ -556,6 +566,29 @@ class LogWriter:
             raise self._diagnose("truth", self._truth_fields, values, exc) from exc
         self._seq_truth = n + 1
         self._append(record)
+
+    def truth_hook(self) -> Callable[[tuple[Any, ...]], None]:
+        """A ground-truth sink for a simulated drive: takes its truth tuple ``(period_index,
+        time_ns, state, disturbance_A, applied_current_A, drive_state)`` (firmware_sim's
+        ``GroundTruth``: one float each; a multi-axis drive's: a tuple per input) and logs it as
+        :meth:`truth` does, the single-axis record built in this one call (the per-period path).
+        A subclass that overrides :meth:`truth`, another thread, and anything that does not pack
+        go through :meth:`truth` (which names what did not pack)."""
+        truth = self.truth
+
+        def general(t: tuple[Any, ...]) -> None:
+            period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
+            if type(disturbance_A) is tuple:  # a multi-axis drive: one value per input already
+                truth(time_ns, state, disturbance_A, applied_A, period_index, drive_state)
+            else:
+                truth(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
+
+        if type(self).truth is not LogWriter.truth:
+            return general
+        # generated for the plant's state count (dob_hil.log.packers): no starred argument
+        return compile_truth_hook(
+            self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
+        )
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None

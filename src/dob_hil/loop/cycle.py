@@ -91,6 +91,7 @@ class ControlCycle:
         self._last_u_dist: tuple[float, ...] = self._zero_u
         self._sim_time = sim_time
         self._check = check
+        self._one_input = step.n_inputs == 1
         self.stats = CycleStats()
 
     def on_feedback(self, k: int, time_ns: int, fb: Feedback, lateness_ns: int, overrun: bool) -> None:
@@ -129,10 +130,16 @@ class ControlCycle:
             time_ns, rx_ns, tx_ns, lateness_ns, fb.counts, position, x_ref, x_hat, x_bar,
             u_fb, u_dist, u_cmd, applied, k, compute_ns, codes, seq, flags,
         )  # fmt: skip
-        # _account, inline (the per-period path): builtins on the tuple, no generator
+        # _account, inline (the per-period path): comparisons, no builtin calls for one input
         s.samples += 1
-        s.max_abs_applied_A = max(s.max_abs_applied_A, *applied, -min(applied))
-        s.compute_ns_max = max(s.compute_ns_max, compute_ns)
+        if self._one_input:
+            a = applied[0]
+            if a > s.max_abs_applied_A or -a > s.max_abs_applied_A:
+                s.max_abs_applied_A = a if a >= 0.0 else -a
+        else:
+            s.max_abs_applied_A = max(s.max_abs_applied_A, *applied, -min(applied))
+        if compute_ns > s.compute_ns_max:  # noqa: PLR1730 (a comparison, no call)
+            s.compute_ns_max = compute_ns
         if self._check is not None:
             self._check(k, position, x_ref)
 

@@ -188,17 +188,8 @@ def _frame_stamper(
 
 
 def _truth_sink(log: LogWriter) -> Callable[[Any], None]:
-    """The simulated drive's ground truth to the log (one call per period: kept short)."""
-    write = log.truth
-
-    def sink(t: Any) -> None:
-        period_index, time_ns, state, disturbance_A, applied_A, drive_state = t
-        if type(disturbance_A) is tuple:  # a multi-axis drive: one value per input already
-            write(time_ns, state, disturbance_A, applied_A, period_index, drive_state)
-            return
-        write(time_ns, state, (disturbance_A,), (applied_A,), period_index, drive_state)
-
-    return sink
+    """The simulated drive's ground truth to the log (one call per period: the writer's hook)."""
+    return log.truth_hook()
 
 
 def default_log_path(config: Config, dob_enabled: bool) -> Path:
