@@ -255,12 +255,13 @@ def test_a_long_gap_is_refused_before_the_bus_is_opened(
     base: LogData, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import dob_hil.link.bus as bus_module
+    import dob_hil.log.reader as reader_module
 
     def no_bus(*args: object, **kwargs: object) -> None:
         raise AssertionError("the bus was opened")
 
     monkeypatch.setattr(bus_module, "open_bus", no_bus)
-    monkeypatch.setattr(playback, "FLUSH", 97)  # the gap checked across the plan's batches
+    monkeypatch.setattr(reader_module, "GROUP_BYTES", 4096)  # the gap checked across many blocks
     path = _log(tmp_path / "gap.mcap", base, periods=300, gap_at=150)
     data = read_log(path)
     stamps = np.sort(np.concatenate([data.frames["timestamp_ns"], data.fd_frames["timestamp_ns"]]))
@@ -276,7 +277,8 @@ def test_a_long_gap_is_refused_before_the_bus_is_opened(
             main(["replay", str(path), "--to-bus", "-i", "virtual", "-c", "x", "--direction", direction]) == 2
         )
         assert "refusing to replay" in capsys.readouterr().err
-    with pytest.raises(LogReadError, match="refusing to replay"):
+    monkeypatch.setattr(playback, "FLUSH", 97)  # array blocks of 97 frames
+    with pytest.raises(LogReadError, match=f"frames {i} and {i + 1} .* refusing to replay"):
         play_frames(FakeClock(0), data.frames, data.fd_frames)  # type: ignore[arg-type]
 
 
@@ -312,6 +314,27 @@ def test_a_refused_send_is_a_drive_fault(base: LogData, tmp_path: Path) -> None:
     with pytest.raises(DriveFault, match=f"sending frame 7 \\(id 0x{expected[7].arbitration_id:X}\\) failed"):
         play_log(clock, path, clock_ns=clock.clock_ns, sleep=clock.sleep, spin_ns=0)  # type: ignore[arg-type]
     assert len(clock.sent) == 7
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_time_order_merges_blocks_as_a_sort_of_the_union(seed: int) -> None:
+    """The plan pass's vectorised merge: channels cut into random blocks (empty ones too, one
+    channel sometimes empty) come out as the sorted union, each frame with its own flag."""
+    rng = np.random.default_rng(seed)
+
+    def channel(n: int, tag: int) -> tuple[list[Any], npt.NDArray[np.uint64]]:
+        t = np.sort(rng.integers(0, 5000, size=n)).astype(np.uint64)
+        cuts = np.sort(rng.integers(0, n + 1, size=int(rng.integers(0, 12))))
+        return [(b, np.full(len(b), tag == 1)) for b in np.split(t, cuts)], t
+
+    a, ta = channel(int(rng.integers(0, 400)) if seed % 4 else 0, 0)
+    b, tb = channel(int(rng.integers(0, 400)), 1)
+    out = list(playback.time_order(iter(a), iter(b)))
+    t = np.concatenate([np.zeros(0, np.uint64), *(o[0] for o in out)])
+    flags = np.concatenate([np.zeros(0, bool), *(o[1] for o in out)])
+    union = np.concatenate([ta, tb])
+    assert np.array_equal(t, np.sort(union))
+    assert np.array_equal(np.sort(t[flags]), tb) and np.array_equal(np.sort(t[~flags]), ta)
 
 
 @pytest.mark.parametrize("seed", range(6))

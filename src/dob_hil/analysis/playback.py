@@ -85,6 +85,10 @@ class FrameSource(Protocol):
         """The channel's frames in file order, restricted to ``names`` (None: every field)."""
         ...
 
+    def both(self, names: tuple[str, ...]) -> Iterator[tuple[StructArray, StructArray]]:
+        """The classic and the FD frames together, block by block (one pass over a log)."""
+        ...
+
 
 class LogFrames:
     """A log's frames, each pass a stream of groups of chunks; the reader's warnings, once each."""
@@ -97,7 +101,16 @@ class LogFrames:
         with open_stream(self.path, {topic: names}, events=False) as stream:
             for group in stream.blocks():
                 yield group.frames if topic == TOPIC_CAN else group.fd_frames
-            self.warnings.extend(w for w in stream.warnings if w not in self.warnings)
+            self._warn(stream.warnings)
+
+    def both(self, names: tuple[str, ...]) -> Iterator[tuple[StructArray, StructArray]]:
+        with open_stream(self.path, dict.fromkeys(TOPICS, names), events=False) as stream:
+            for group in stream.blocks():
+                yield group.frames, group.fd_frames
+            self._warn(stream.warnings)
+
+    def _warn(self, warnings: list[str]) -> None:
+        self.warnings.extend(w for w in warnings if w not in self.warnings)
 
 
 class ArrayFrames:
@@ -112,16 +125,17 @@ class ArrayFrames:
         for start in range(0, len(array), FLUSH):
             yield array[start : start + FLUSH]
 
+    def both(self, names: tuple[str, ...]) -> Iterator[tuple[StructArray, StructArray]]:
+        yield self._arrays[TOPIC_CAN], self._arrays[TOPIC_CAN_FD]
+
 
 def transmitted_ids(source: FrameSource) -> dict[str, npt.NDArray[np.int64]]:
     """Per channel, the ids the log holds in the transmit direction (sorted)."""
-    out: dict[str, npt.NDArray[np.int64]] = {}
-    for topic in TOPICS:
-        ids: set[int] = set()
-        for block in source.blocks(topic, ("arbitration_id", "direction")):
-            ids.update(np.unique(block["arbitration_id"][block["direction"] == CAN_TX]).tolist())
-        out[topic] = np.asarray(sorted(ids), dtype=np.int64)
-    return out
+    ids: dict[str, set[int]] = {topic: set() for topic in TOPICS}
+    for blocks in source.both(("arbitration_id", "direction")):
+        for topic, block in zip(TOPICS, blocks, strict=True):
+            ids[topic].update(np.unique(block["arbitration_id"][block["direction"] == CAN_TX]).tolist())
+    return {topic: np.asarray(sorted(ids[topic]), dtype=np.int64) for topic in TOPICS}
 
 
 @dataclass
@@ -150,13 +164,12 @@ class _GapCheck:
         self.latest: int | None = None
         self.found: tuple[int, int] | None = None  # (index of the frame after the gap, gap ns)
 
-    def add(self, stamps: list[int]) -> None:
-        if not stamps:
+    def add(self, t: npt.NDArray[np.uint64]) -> None:
+        if not len(t):
             return
-        n, self.n = self.n, self.n + len(stamps)
+        n, self.n = self.n, self.n + len(t)
         if self.found is not None:
             return
-        t = np.asarray(stamps, dtype=np.uint64)
         start = t[:1] if self.latest is None else np.asarray([self.latest], dtype=np.uint64)
         latest = np.maximum.accumulate(np.concatenate([start, t]))  # [k]: the latest before frame k
         gaps = np.where(t > latest[:-1], t - latest[:-1], np.uint64(0))
@@ -189,10 +202,13 @@ class PlaybackPlan:
     selection: _Selection | None = field(default=None, repr=False)
 
 
+Stamps = tuple[npt.NDArray[np.uint64], npt.NDArray[np.bool_]]  # timestamps, sent or not
+
+
 def _stamps(
     topic: str, source: FrameSource, sel: _Selection, plan: PlaybackPlan, ids: Counter[int]
-) -> Iterator[tuple[int, bool]]:
-    """One channel's (timestamp, sent) in file order; counts into ``plan`` and ``ids``."""
+) -> Iterator[Stamps]:
+    """One channel's (timestamps, sent) block by block; counts into ``plan`` and ``ids``."""
     for block in source.blocks(topic, _PLAN_FIELDS):
         chosen, sent, errors, echoes = sel.split(topic, block)
         plan.frames += len(chosen)
@@ -200,7 +216,49 @@ def _stamps(
         plan.echoes += echoes
         values, counts = np.unique(chosen["arbitration_id"][sent], return_counts=True)
         ids.update(dict(zip(values.tolist(), counts.tolist(), strict=True)))
-        yield from zip(chosen["timestamp_ns"].tolist(), sent.tolist(), strict=True)
+        if len(chosen):
+            yield chosen["timestamp_ns"].astype(np.uint64), sent
+
+
+def _head(t: npt.NDArray[np.uint64], horizon: int) -> int:
+    """How many of ``t`` come before the first one later than ``horizon``."""
+    over = np.flatnonzero(t > np.uint64(horizon))
+    return int(over[0]) if len(over) else len(t)
+
+
+def time_order(first: Iterator[Stamps], second: Iterator[Stamps]) -> Iterator[Stamps]:
+    """Two channels' blocks (each in non-decreasing time) merged in time order, vectorised: each
+    round passes on what neither channel can still precede (up to the earlier of the two last
+    timestamps held). A frame back in time within its channel passes with its neighbours."""
+    sources: list[Iterator[Stamps] | None] = [first, second]
+    empty: Stamps = (np.zeros(0, np.uint64), np.zeros(0, np.bool_))
+    held = [empty, empty]
+    while True:
+        for k in (0, 1):
+            source = sources[k]
+            while source is not None and not len(held[k][0]):
+                got = next(source, None)
+                if got is None:
+                    sources[k] = source = None
+                else:
+                    held[k] = got
+        if not len(held[0][0]) or not len(held[1][0]):  # one channel is done: the other passes
+            if len(held[0][0]) or len(held[1][0]):
+                yield held[0] if len(held[0][0]) else held[1]
+            if sources[0] is None and sources[1] is None:
+                return
+            held = [empty, empty]
+            continue
+        (ta, sa), (tb, sb) = held
+        horizon = min(int(ta[-1]), int(tb[-1]))
+        ca, cb = _head(ta, horizon), _head(tb, horizon)
+        if ca == cb == 0:  # only frames back in time stand in the way: the channel ending first passes
+            ca, cb = (len(ta), 0) if int(ta[-1]) == horizon else (0, len(tb))
+        t = np.concatenate([ta[:ca], tb[:cb]])
+        sent = np.concatenate([sa[:ca], sb[:cb]])
+        order = np.argsort(t, kind="stable")
+        yield t[order], sent[order]
+        held = [(ta[ca:], sa[ca:]), (tb[cb:], sb[cb:])]
 
 
 def plan_playback(
@@ -212,10 +270,10 @@ def plan_playback(
     plan = PlaybackPlan(selection=sel)
     ids: Counter[int] = Counter()
     every, sent_only = _GapCheck(max_gap_ns), _GapCheck(max_gap_ns)
-    merged = heapq.merge(*(_stamps(topic, source, sel, plan, ids) for topic in TOPICS), key=itemgetter(0))
-    while batch := list(islice(merged, FLUSH)):
-        every.add([t for t, _ in batch])
-        sent_only.add([t for t, sent in batch if sent])
+    classic, fd = (_stamps(topic, source, sel, plan, ids) for topic in TOPICS)
+    for t, sent in time_order(classic, fd):
+        every.add(t)
+        sent_only.add(t[sent])
     plan.refusal = every.error() or sent_only.error()
     plan.sent = sent_only.n
     if ids:
