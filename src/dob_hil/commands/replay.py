@@ -159,18 +159,26 @@ def _looks_like_json(path: Path) -> bool:
     return head.startswith(b"{")
 
 
-def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
-    from dob_hil.analysis.playback import check_gaps, play_frames
+def _to_bus(path: Path, args: argparse.Namespace) -> int:
+    """``--to-bus``: the log streamed (:mod:`dob_hil.analysis.playback`), memory bounded whatever
+    its length; everything is checked before the bus is opened."""
+    from dob_hil.analysis.playback import LogFrames, plan_playback, play
     from dob_hil.link.bus import open_bus
+    from dob_hil.log.schemas import CAN_RX, CAN_TX
+    from dob_hil.log.stream import return_large_buffers_to_the_os
 
-    frames, fd = log.data.frames, log.data.fd_frames
-    if args.direction != "both":  # rx: what the drive sent (a drive stand-in); tx: what we sent
-        want = 0 if args.direction == "rx" else 1
-        frames, fd = frames[frames["direction"] == want], fd[fd["direction"] == want]
-    if len(frames) + len(fd) == 0:
-        print(f"dob-hil replay: {log.path}: the log holds no frames; nothing sent", file=sys.stderr)
+    return_large_buffers_to_the_os()
+    source = LogFrames(path)
+    # rx: what the drive sent (a drive stand-in); tx: what we sent
+    direction = {"rx": CAN_RX, "tx": CAN_TX}.get(args.direction)
+    plan = plan_playback(source, direction)
+    for warning in source.warnings:
+        print(f"dob-hil replay: warning: {path}: {warning}", file=sys.stderr)
+    if plan.frames == 0:
+        print(f"dob-hil replay: {path}: the log holds no frames; nothing sent", file=sys.stderr)
         return 0
-    check_gaps(frames, fd)  # before the bus is opened: a damaged log sends nothing
+    if plan.refusal is not None:  # before the bus is opened: a damaged log sends nothing
+        raise plan.refusal
     from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 
     rt = RtSettings(
@@ -183,11 +191,11 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
         print(f"dob-hil replay: warning: {refused}", file=sys.stderr)
     try:
         print(
-            f"dob-hil replay: sending {len(frames) + len(fd)} recorded frames onto "
+            f"dob-hil replay: sending {plan.frames} recorded frames onto "
             f"{bus.channel_info} with their original timing",
             file=sys.stderr,
         )
-        stats = play_frames(bus, frames, fd, spin_ns=0 if args.no_spin else 150_000)
+        stats = play(bus, source, plan, spin_ns=0 if args.no_spin else 150_000)
     finally:
         restore_rt_settings(rt)
         if cpus_before is not None and rt.cpus:
@@ -195,11 +203,11 @@ def _to_bus(log: LoadedLog, args: argparse.Namespace) -> int:
         bus.shutdown()
     d = stats.to_dict()
     if args.json:
-        print(json.dumps({"mode": "to-bus", "log": str(log.path), **d}, indent=1))
+        print(json.dumps({"mode": "to-bus", "log": str(path), **d}, indent=1))
     else:
         lat = stats.lateness_us or {}
         print(
-            f"replay --to-bus {log.path}: {stats.frames_sent} frames over {stats.duration_s:.3f} s; "
+            f"replay --to-bus {path}: {stats.frames_sent} frames over {stats.duration_s:.3f} s; "
             f"lateness p50 {lat.get('p50', 0):.1f} us, p99 {lat.get('p99', 0):.1f} us, "
             f"max {lat.get('max', 0):.1f} us; {stats.late_frames} more than "
             f"{stats.late_threshold_us:g} us late"
@@ -226,6 +234,4 @@ def main(args: argparse.Namespace) -> int:
         if args.verify:
             return _verify(log, args.json)
         return _design(log, args.design, args.json)
-    log = load_log(Path(args.log))
-    _warn(log)
-    return _to_bus(log, args)
+    return _to_bus(Path(args.log), args)  # streamed: the frames only
