@@ -115,17 +115,23 @@ def full_stack_us(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: 
     return wall_us, dropped
 
 
-def full_stack(scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str) -> tuple[float, float, int]:
-    """(wall us per sample, marginal CPU us per sample, dropped records).
+def full_stack(
+    scenario: str, n_samples: int, tmp: Path, tag: str, bus_impl: str
+) -> tuple[float, float, float, int]:
+    """(wall us per sample, marginal wall us per sample, marginal CPU us per sample, dropped records).
 
-    The CPU figure is this thread's CPU time of the run minus that of a run of a tenth of the
-    samples, per extra sample: the setup (design, writer process start) cancels out, and time
-    spent waiting for a CPU (the machine's other load, the writer process) is not counted.
+    The marginal figures are those of the run minus those of a run of a tenth of the samples, per
+    extra sample: the fixed cost of a run (the enable sequence, e.g. CiA 402's SDO configuration
+    over canopen, inside the loop's wall time) cancels out. The CPU figure is this thread's CPU
+    time: time spent waiting for a CPU (the machine's other load, the writer process) is not
+    counted either.
     """
     short = max(1, n_samples // 10)
-    _, n_short, cpu_short, drop_short = _session(scenario, short, tmp, tag + "s", bus_impl)
+    wall_short, n_short, cpu_short, drop_short = _session(scenario, short, tmp, tag + "s", bus_impl)
     wall_us, n_long, cpu_long, dropped = _session(scenario, n_samples, tmp, tag, bus_impl)
-    return wall_us, (cpu_long - cpu_short) / (n_long - n_short) / 1000.0, dropped + drop_short
+    extra = n_long - n_short
+    marginal_wall_us = (wall_us * n_long - wall_short * n_short) / extra
+    return wall_us, marginal_wall_us, (cpu_long - cpu_short) / extra / 1000.0, dropped + drop_short
 
 
 def main() -> None:
@@ -140,6 +146,7 @@ def main() -> None:
     bare_cpu: list[float] = []
     full: dict[str, list[float]] = {name: [] for name in PROFILES}
     full_cpu: dict[str, list[float]] = {name: [] for name in PROFILES}
+    full_marginal: dict[str, list[float]] = {name: [] for name in PROFILES}
     virtual: list[float] = []
     bare_own: dict[str, list[float]] = {name: [] for name in PROFILES}
     dropped = 0
@@ -150,8 +157,9 @@ def main() -> None:
             bare_cpu.append(cpu)
             for name, scenario in PROFILES.items():
                 bare_own[name].append(bare_profile_exchange(n_bare, PROFILE_FRAMES[name]))
-                us, cpu_us, drop = full_stack(scenario, n_samples, Path(d), str(i), "inprocess")
+                us, marginal_us, cpu_us, drop = full_stack(scenario, n_samples, Path(d), str(i), "inprocess")
                 full[name].append(us)
+                full_marginal[name].append(marginal_us)
                 full_cpu[name].append(cpu_us)
                 dropped += drop
             us_v, drop_v = full_stack_us(PROFILES["native"], n_samples, Path(d), str(i), "virtual")
@@ -174,6 +182,11 @@ def main() -> None:
         }  # fmt: skip
         result[f"{name}_ratio_full_over_bare"] = {
             "median": median(ratios), "min": min(ratios), "max": max(ratios)
+        }  # fmt: skip
+        marginal_ratios = [f / b for f, b in zip(full_marginal[name], bare, strict=True)]
+        result[f"{name}_marginal_wall_us_per_sample"] = median(full_marginal[name])
+        result[f"{name}_marginal_wall_ratio"] = {
+            "median": median(marginal_ratios), "min": min(marginal_ratios), "max": max(marginal_ratios)
         }  # fmt: skip
         result[f"{name}_cpu_us_per_sample"] = median(full_cpu[name])
         result[f"{name}_cpu_ratio"] = {
