@@ -23,6 +23,8 @@ sampled at its arrival). Exceptions in either thread stop both and are re-raised
 
 from __future__ import annotations
 
+import math
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -30,58 +32,149 @@ from collections.abc import Callable
 import can
 
 from dob_hil.config import Config
-from dob_hil.link.odrive.codec import CmdId
+from dob_hil.link.odrive import codec
+from dob_hil.link.odrive.codec import DLC, AxisState, CmdId, ODriveError
 from firmware_sim.impairments import FeedbackImpairment
 from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
 from firmware_sim.threads import DriveThreads
+from firmware_sim.truth import GroundTruth
 
 RECV_POLL_S = 0.05
+FAST_PATH = True  # False: every frame and period through the general path (the fast path's tests)
+_CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL
+_TORQUE = struct.Struct("<f4x")  # Set_Input_Torque's payload (codec.decode_set_input_torque)
+_ESTIMATES = struct.Struct("<ff")
+_F32_MAX = codec.F32_MAX
 
 
 class OdriveLockstep:
     def __init__(self, bus: can.BusABC, config: Config, truth_sink: TruthSink | None = None) -> None:
         self.bus = bus
-        self.core = OdriveCore(config, want_truth=truth_sink is not None)
+        self.core = core = OdriveCore(config, want_truth=truth_sink is not None)
         self.truth_sink = truth_sink
         sim = config.sim
         self.impairment = FeedbackImpairment(0.0, 0.0, sim.loss_probability, sim.seed)
         self._awaiting = False  # estimates went out; the next torque input closes the period
         self._sampled_at = -1  # the instant the last estimates were taken at
         self._truth_at = -1  # the instant of the last ground-truth record
+        self.fast = FAST_PATH  # the per-frame and per-period fast paths (module docstring)
+        self._torque_id = core.ids[CmdId.SET_INPUT_TORQUE]
+        c_row = config.plant.C[0]  # the position row, as firmware_sim.plant.PlantModel takes it
+        self._rows_2 = (  # (C row, C A row) of a two-state plant, for the inline sample
+            (float(c_row[0]), float(c_row[1]), *core.vel_row) if len(core.vel_row) == 2 else None
+        )
 
     def service(self) -> int:
-        recv, core = self.bus.recv, self.core
+        """Act on every frame pending on the drive's bus end (returns how many were read).
+
+        Fast path (:attr:`fast`): a well-formed Set_Input_Torque and an RTR Get_Encoder_Estimates
+        are handled inline, and the period an RTR closes goes through :meth:`_period_fast`; every
+        other frame (and every frame with ``fast`` off) goes through :meth:`_on_message`.
+        """
+        recv = self.bus.recv
+        if not self.fast:
+            n = 0
+            while (msg := recv(0.0)) is not None:
+                n += 1
+                if self._on_message(msg):
+                    return n
+            return n
+        core = self.core
+        torque_id, estimates_id = self._torque_id, core.estimates_id
         n = 0
-        while True:
-            msg = recv(0.0)
-            if msg is None:
-                return n
+        while (msg := recv(0.0)) is not None:
             n += 1
-            if msg.is_error_frame:
-                core.stats.rx_errors += 1
-                continue
-            if msg.is_extended_id:
-                core.stats.frames_ignored += 1
-                continue
-            was_closed = core.closed_loop
-            cmd = core.on_frame(msg.arbitration_id, msg.data, msg.is_remote_frame, core.time_ns)
-            if cmd is CmdId.SET_INPUT_TORQUE and self._awaiting and core.cyclic:
-                self._run_period()
+            if not (msg.is_error_frame or msg.is_extended_id):
+                aid = msg.arbitration_id
+                if aid == torque_id and not msg.is_remote_frame:
+                    data = msg.data
+                    if len(data) == DLC:  # core._on_set_input_torque, inline
+                        torque: float = _TORQUE.unpack(data)[0]
+                        if -math.inf < torque < math.inf:
+                            core.input_torque_Nm = torque
+                            core.stats.commands_accepted += 1
+                            if core.axis_state is _CLOSED_LOOP:
+                                core.fed = True
+                                current_A = torque / core.kt  # core.apply, inline: within the limit
+                                if core.torque_passthrough and abs(current_A) <= core.current_limit_A:
+                                    core.path.schedule(core.time_ns, current_A)
+                                else:
+                                    core.apply(core.time_ns)
+                            if self._awaiting and core.cyclic:
+                                self._run_period()
+                                return n
+                            if core.out:
+                                self._send_outgoing()
+                            continue
+                elif aid == estimates_id and msg.is_remote_frame:
+                    core.stats.rtr_answered += 1
+                    if core.cyclic or self._sampled_at != core.time_ns:
+                        self._send_estimates()  # the estimates of this instant
+                        continue
+                    self._period_fast()  # host-clocked: each RTR after the first is the next instant
+                    return n
+            if self._on_message(msg):
                 return n
-            if cmd is CmdId.GET_ENCODER_ESTIMATES:
-                core.stats.rtr_answered += 1
-                if core.cyclic or self._sampled_at != core.time_ns:
-                    self._send_estimates()  # the estimates of this instant
-                    continue
-                self._run_period()  # host-clocked: each RTR after the first is the next instant
-                return n
-            elif cmd is CmdId.SET_AXIS_STATE:
-                core.heartbeat_now()
-                self._send_outgoing()
-                if core.closed_loop and not was_closed and core.cyclic:
-                    self._send_estimates()
-            else:
-                self._send_outgoing()
+        return n
+
+    def _on_message(self, msg: can.Message) -> bool:
+        """The general path of one frame; True if it closed a period (service returns)."""
+        core = self.core
+        if msg.is_error_frame:
+            core.stats.rx_errors += 1
+            return False
+        if msg.is_extended_id:
+            core.stats.frames_ignored += 1
+            return False
+        was_closed = core.closed_loop
+        cmd = core.on_frame(msg.arbitration_id, msg.data, msg.is_remote_frame, core.time_ns)
+        if cmd is CmdId.SET_INPUT_TORQUE and self._awaiting and core.cyclic:
+            self._run_period()
+            return True
+        if cmd is CmdId.GET_ENCODER_ESTIMATES:
+            core.stats.rtr_answered += 1
+            if core.cyclic or self._sampled_at != core.time_ns:
+                self._send_estimates()  # the estimates of this instant
+                return False
+            self._run_period()  # host-clocked: each RTR after the first is the next instant
+            return True
+        if cmd is CmdId.SET_AXIS_STATE:
+            core.heartbeat_now()
+            self._send_outgoing()
+            if core.closed_loop and not was_closed and core.cyclic:
+                self._send_estimates()
+        else:
+            self._send_outgoing()
+        return False
+
+    def _period_fast(self) -> None:
+        """:meth:`_run_period` with its estimates, in one call for the common case: closed loop, no
+        injected faults, a finite position. Anything else: the general
+        path (the same records: tests/odrive/test_fast_path.py)."""
+        core = self.core
+        if core.faults is not None or core.axis_state is not _CLOSED_LOOP:
+            self._run_period()
+            return
+        # core.integrate_to, inline: one held current over the whole period
+        t = core.time_ns
+        t1 = t + core.period_ns
+        path = core.path
+        if path.settle(t):
+            core.plant.advance(t, t1, path.held_A)
+            core.time_ns = t1
+        else:
+            core.integrate_to(t1)
+        # core.period_boundary, inline (no faults, closed loop)
+        missed = 0 if core.fed else core.missed + 1
+        core.missed = missed
+        core.fed = False
+        if missed >= core.watchdog_periods:
+            core.set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, t1)
+        if t1 >= core.next_heartbeat_ns:
+            core.heartbeat_if_due()
+        if core.out:  # a heartbeat (or the watchdog's error) goes out before the estimates
+            self._send_outgoing()
+        self._send_estimates()
 
     def _run_period(self, *, sample: bool = True) -> None:
         core = self.core
@@ -100,20 +193,59 @@ class OdriveLockstep:
         self._run_period(sample=self.core.cyclic)
 
     def _send_estimates(self) -> None:
-        payload, truth = self.core.estimates()
-        self._sampled_at = self.core.time_ns
-        self._send_outgoing()  # an error the sample raised goes out first
+        """Get_Encoder_Estimates of this instant (unless lost or silenced) and its ground truth.
+
+        Fast path (:attr:`fast`, a two-state plant, no injected faults, a finite position):
+        :meth:`OdriveCore.estimates` and :meth:`OdriveCore.truth` inline, the same arithmetic in
+        the same order; anything else samples through the core."""
+        core = self.core
+        rows = self._rows_2
+        x = core.plant.state
+        pos_unit = math.nan
+        if rows is not None and self.fast and core.faults is None:
+            c0, c1, v0, v1 = rows
+            pos_unit = c0 * x[0] + c1 * x[1]  # plant.position() of a two-state plant
+        if -math.inf < pos_unit < math.inf:
+            std = core.noise_std_counts
+            noise_counts = core.rng.normal(0.0, std) if std > 0 else 0.0
+            tpu = core.turns_per_unit
+            pos_turns = pos_unit * tpu + (0 + noise_counts) / core.cpr  # no injected offset: 0 counts
+            vel_turns = sum((v0 * x[0], v1 * x[1])) * tpu  # the core's sum over C A x, same order
+            core.stats.samples += 1
+            if -_F32_MAX <= pos_turns <= _F32_MAX and -_F32_MAX <= vel_turns <= _F32_MAX:
+                payload = _ESTIMATES.pack(pos_turns, vel_turns)
+            else:
+                payload = core.pack_estimates(pos_turns, vel_turns)
+            t = core.time_ns
+            truth: GroundTruth | None = None
+            if core.want_truth:  # core.truth(), inline
+                d = core.disturbance
+                t_s = t * 1e-9
+                origin_s = d.origin_s
+                w_A = 0.0 if origin_s is None or t_s < origin_s else d.inner.value_A(t_s - origin_s)
+                state = (t // core.period_ns, t, x, w_A, core.path.held_A, core.drive_state)
+                truth = tuple.__new__(GroundTruth, state)
+        else:
+            payload, truth = core.estimates()
+            t = core.time_ns
+        self._sampled_at = t
+        if core.out:
+            self._send_outgoing()  # an error the sample raised goes out first
         self._awaiting = True
-        if self.impairment.lost():
-            self.core.stats.feedback_lost += 1
-        elif self._send(self.core.estimates_id, payload):
-            self.core.stats.feedback_sent += 1
-        if truth is not None and self.truth_sink is not None and self._truth_at != self.core.time_ns:
-            self._truth_at = self.core.time_ns
+        impairment = self.impairment
+        if impairment.loss_probability > 0.0 and impairment.lost():
+            core.stats.feedback_lost += 1
+        elif core.silent:
+            core.stats.frames_suppressed += 1
+        else:  # _send, inline: stamped with the simulated time
+            self.bus.send(can.Message(t * 1e-9, core.estimates_id, False, False, False, None, None, payload))
+            core.stats.feedback_sent += 1
+        if truth is not None and self.truth_sink is not None and self._truth_at != t:
+            self._truth_at = t
             self.truth_sink(truth)
 
     def _send_outgoing(self) -> None:
-        if not self.core._out:  # the common case: nothing queued (no list swap)
+        if not self.core.out:  # the common case: nothing queued (no list swap)
             return
         for aid, payload in self.core.take_outgoing():
             self._send(aid, payload)
@@ -124,9 +256,7 @@ class OdriveLockstep:
             return False
         # stamped with the simulated time, as a drive's controller stamps on its own clock
         stamp_s = self.core.time_ns * 1e-9
-        self.bus.send(
-            can.Message(timestamp=stamp_s, arbitration_id=arbitration_id, data=payload, is_extended_id=False)
-        )
+        self.bus.send(can.Message(stamp_s, arbitration_id, False, False, False, None, None, payload))
         return True
 
 

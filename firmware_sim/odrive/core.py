@@ -104,21 +104,22 @@ class OdriveCore:
         self.watchdog_periods = drive.watchdog_periods
         self.disturbance = StartAtEnable(Disturbance(sim.disturbances, plant.period_s / sim.substeps))
         self.plant = PlantModel(plant, sim.substeps, cast(Disturbance, self.disturbance), sim.initial_state)
-        self._vel_row = [float(v) for v in (np.asarray(plant.C) @ np.asarray(plant.A))[0]]
-        self._noise_std_counts = sim.noise_counts_std
-        self._rng = np.random.default_rng([sim.seed, 0x0D])
+        self.vel_row = [float(v) for v in (np.asarray(plant.C) @ np.asarray(plant.A))[0]]
+        self.noise_std_counts = sim.noise_counts_std
+        self.rng = np.random.default_rng([sim.seed, 0x0D])
         self.path = CurrentPath()
         self.stats = OdriveStats()
         self.axis_state = AxisState.IDLE
         self.axis_error = 0
         self.control_mode = ControlMode.VOLTAGE_CONTROL
         self.input_mode = InputMode.INACTIVE
+        self.torque_passthrough = False  # Set_Input_Torque drives the current: TORQUE_CONTROL, PASSTHROUGH
         self.input_torque_Nm = 0.0
         self.time_ns = 0
-        self._missed = 0  # watchdog: periods in a row in closed loop without a torque input
-        self._fed = False  # a torque input arrived in the current period
-        self._next_heartbeat_ns = self.heartbeat_ns
-        self._out: list[Outgoing] = []
+        self.missed = 0  # watchdog: periods in a row in closed loop without a torque input
+        self.fed = False  # a torque input arrived in the current period
+        self.next_heartbeat_ns = self.heartbeat_ns
+        self.out: list[Outgoing] = []
         self.faults = DriveFaults.from_config(config)
         self.silent = False
 
@@ -139,7 +140,7 @@ class OdriveCore:
         return DriveState.ENABLED if self.axis_state is _CLOSED_LOOP else DriveState.DISABLED
 
     def take_outgoing(self) -> list[Outgoing]:
-        out, self._out = self._out, []
+        out, self.out = self.out, []
         return out
 
     # --- frames --------------------------------------------------------------------------------
@@ -170,8 +171,8 @@ class OdriveCore:
         if requested is AxisState.CLOSED_LOOP_CONTROL:
             if not self.axis_error and self.axis_state is not _CLOSED_LOOP:
                 self.axis_state = AxisState.CLOSED_LOOP_CONTROL
-                self._missed, self._fed = 0, False
-                self._apply(t_ns)
+                self.missed, self.fed = 0, False
+                self.apply(t_ns)
                 self.disturbance.start(t_ns)
                 if self.faults is not None:
                     self.faults.on_enabled(self.period_index)
@@ -180,8 +181,11 @@ class OdriveCore:
 
     def _on_set_controller_mode(self, data: bytes, t_ns: int) -> None:
         self.control_mode, self.input_mode = codec.decode_set_controller_mode(data)
+        self.torque_passthrough = (
+            self.control_mode is ControlMode.TORQUE_CONTROL and self.input_mode is InputMode.PASSTHROUGH
+        )
         if self.axis_state is _CLOSED_LOOP:
-            self._apply(t_ns)
+            self.apply(t_ns)
 
     def _on_set_input_torque(self, data: bytes, t_ns: int) -> None:
         torque = codec.decode_set_input_torque(data)
@@ -190,19 +194,16 @@ class OdriveCore:
         self.input_torque_Nm = torque
         self.stats.commands_accepted += 1
         if self.axis_state is _CLOSED_LOOP:
-            self._fed = True
-            self._apply(t_ns)
+            self.fed = True
+            self.apply(t_ns)
 
     def _on_clear_errors(self, data: bytes, t_ns: int) -> None:
         codec.decode_clear_errors(data)
         self.axis_error = 0
 
-    def _apply(self, t_ns: int) -> None:
+    def apply(self, t_ns: int) -> None:
         """The current the torque loop applies from ``t_ns`` (closed loop only)."""
-        if (
-            self.control_mode is not ControlMode.TORQUE_CONTROL
-            or self.input_mode is not InputMode.PASSTHROUGH
-        ):
+        if not self.torque_passthrough:
             self.path.schedule(t_ns, 0.0)
             return
         current = self.input_torque_Nm / self.kt
@@ -243,21 +244,21 @@ class OdriveCore:
             self.faults.on_period(cast(Any, self), self.period_index)
             self.silent = self.faults.silent
         if self.axis_state is _CLOSED_LOOP:
-            self._missed = 0 if self._fed else self._missed + 1
-            self._fed = False
-            if self._missed >= self.watchdog_periods:
+            self.missed = 0 if self.fed else self.missed + 1
+            self.fed = False
+            if self.missed >= self.watchdog_periods:
                 self.set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, self.time_ns)
         self.heartbeat_if_due()
 
     def heartbeat_if_due(self) -> None:
-        if self.time_ns >= self._next_heartbeat_ns:
+        if self.time_ns >= self.next_heartbeat_ns:
             self.heartbeat_now()
-            while self._next_heartbeat_ns <= self.time_ns:
-                self._next_heartbeat_ns += self.heartbeat_ns
+            while self.next_heartbeat_ns <= self.time_ns:
+                self.next_heartbeat_ns += self.heartbeat_ns
 
     def heartbeat_now(self) -> None:
         hb = codec.Heartbeat(self.axis_error, self.axis_state, 0, False)
-        self._out.append((self.heartbeat_id, codec.encode_heartbeat(hb)))
+        self.out.append((self.heartbeat_id, codec.encode_heartbeat(hb)))
         self.stats.heartbeats_sent += 1
 
     def estimates(self) -> tuple[bytes, GroundTruth | None]:
@@ -267,17 +268,22 @@ class OdriveCore:
         if not math.isfinite(pos_unit):
             self.set_error(ODriveError.MISSING_ESTIMATE, self.time_ns)
         offset_counts = 0 if self.faults is None else self.faults.counts(self.period_index, 0)
-        noise_counts = self._rng.normal(0.0, self._noise_std_counts) if self._noise_std_counts > 0 else 0.0
+        noise_counts = self.rng.normal(0.0, self.noise_std_counts) if self.noise_std_counts > 0 else 0.0
         pos_turns = pos_unit * self.turns_per_unit + (offset_counts + noise_counts) / self.cpr
-        vel_turns = sum(c * v for c, v in zip(self._vel_row, x, strict=True)) * self.turns_per_unit
+        vel_turns = sum(c * v for c, v in zip(self.vel_row, x, strict=True)) * self.turns_per_unit
         self.stats.samples += 1
-        try:
-            payload = _ESTIMATES.pack(_clip_f32(pos_turns), _clip_f32(vel_turns))
-        except (struct.error, OverflowError):
-            payload = _ESTIMATES.pack(math.nan, math.nan)
+        payload = self.pack_estimates(pos_turns, vel_turns)
         if not self.want_truth:
             return payload, None
         return payload, self.truth()
+
+    @staticmethod
+    def pack_estimates(pos_turns: float, vel_turns: float) -> bytes:
+        """The Get_Encoder_Estimates payload: float32 (inf beyond their range; NaN if unpackable)."""
+        try:
+            return _ESTIMATES.pack(_clip_f32(pos_turns), _clip_f32(vel_turns))
+        except (struct.error, OverflowError):
+            return _ESTIMATES.pack(math.nan, math.nan)
 
     def truth(self) -> GroundTruth:
         """The ground truth at :attr:`time_ns` (never on the bus)."""

@@ -12,7 +12,7 @@ from dob_hil.config import Config
 from dob_hil.link.odrive.codec import AxisState
 from firmware_sim.clocked import ClockedDrive, ClockKind
 from firmware_sim.odrive.clocks import OdriveLockstep, OdriveRealtime
-from firmware_sim.odrive.core import OdriveStats, TruthSink
+from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
 
 
 class SimulatedOdrive(ClockedDrive[OdriveLockstep, OdriveRealtime]):
@@ -27,8 +27,10 @@ class SimulatedOdrive(ClockedDrive[OdriveLockstep, OdriveRealtime]):
     ) -> None:
         self.config = config
         self.clock: ClockKind = clock
+        self._core: OdriveCore | None = None  # lockstep: the clock's core (cheap per-period reads)
         if clock == "lockstep":
             self._lockstep = OdriveLockstep(bus, config, truth_sink)
+            self._core = self._lockstep.core
         elif clock == "realtime":
             self._realtime = OdriveRealtime(bus, config, truth_sink, spin_ns=spin_ns)
         else:
@@ -57,10 +59,11 @@ class SimulatedOdrive(ClockedDrive[OdriveLockstep, OdriveRealtime]):
 
     @property
     def period_index(self) -> int:
-        if self._realtime is not None:
-            return self._realtime.snapshot()[1]
-        assert self._lockstep is not None
-        return self._lockstep.core.period_index
+        core = self._core  # read by the lockstep loop every period: no property chain
+        if core is not None:
+            return core.time_ns // core.period_ns
+        assert self._realtime is not None
+        return self._realtime.snapshot()[1]
 
     @property
     def true_state(self) -> tuple[float, ...]:

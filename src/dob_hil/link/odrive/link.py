@@ -67,6 +67,8 @@ _TORQUE: Final = struct.Struct("<f4x")
 _BITS: Final = struct.Struct("<i")
 _F32: Final = struct.Struct("<f")
 _CLOSED_LOOP: Final = int(AxisState.CLOSED_LOOP_CONTROL)
+_PAD4: Final = bytes(4)  # Set_Input_Torque's bytes 4..7
+FAST_PATH = True  # False: every frame and command through the general path (the fast path's tests)
 
 
 @dataclass(slots=True)
@@ -216,6 +218,12 @@ class OdriveDriveLink(ClosingLink):
         self._enable_seen = False
         self._pending: Feedback | None = None
         self._closed = False
+        self.fast = FAST_PATH  # the per-period fast paths (receive, quantize, command), same results
+        self._kt = options.torque_constant_Nm_per_A
+        self._limit_A = drive.current_limit_A
+        self._q_codes: tuple[int, ...] | None = None  # the codes quantize returned last ...
+        self._q_payload = b""  # ... and their Set_Input_Torque payload
+        self._rtr: can.Message | None = None  # lockstep: the RTR trigger, sent again every period
 
     # --- DriveLink ---------------------------------------------------------------------------------
     @property
@@ -228,7 +236,8 @@ class OdriveDriveLink(ClosingLink):
         return self._heartbeat
 
     def receive_feedback(self, timeout_ns: int) -> Feedback | None:
-        self._check_open()
+        if self._closed:
+            self._check_open()
         recv = self._bus.recv
         if timeout_ns <= 0:
             for _ in range(MAX_READS_AFTER_DEADLINE):
@@ -238,7 +247,8 @@ class OdriveDriveLink(ClosingLink):
                 self._consume(msg)
                 if self._pending is not None:
                     break
-            return self._take()
+            fb, self._pending = self._pending, None  # _take, inline (the per-period path)
+            return fb
         deadline_ns = time.monotonic_ns() + timeout_ns
         while self._pending is None:
             remaining_ns = deadline_ns - time.monotonic_ns()
@@ -255,6 +265,22 @@ class OdriveDriveLink(ClosingLink):
         return fb
 
     def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
+        if self.fast and len(current_A) == N_AXES:
+            # TorqueQuantizer.quantize for a current within the limit, in one call: the float32
+            # rounding by struct (the same C cast as numpy's); its bytes are the command's payload
+            u = current_A[0]
+            limit_A, kt = self._limit_A, self._kt
+            if -limit_A <= u <= limit_A:
+                try:
+                    raw = _F32.pack(u * kt)
+                except OverflowError:  # beyond float32 (an absurd limit): the general path
+                    raw = b""
+                if raw:
+                    torque: float = _F32.unpack(raw)[0]
+                    if abs(torque) / kt <= limit_A:  # else one ulp towards zero: the general path
+                        codes = (_BITS.unpack(raw)[0],)
+                        self._q_codes, self._q_payload = codes, raw + _PAD4
+                        return codes, (torque / kt,), False
         result = self._quantizer.quantize(current_A)
         if result[2] and not -math.inf < current_A[0] < math.inf:
             self.stats.nonfinite_currents += 1
@@ -267,6 +293,12 @@ class OdriveDriveLink(ClosingLink):
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """Set_Input_Torque of ``codes[0]`` (a float32 bit pattern, clamped at the limit)."""
+        if codes is self._q_codes:  # what quantize just returned: finite, within the limit
+            if self._closed:
+                self._check_open()
+            msg = can.Message(0.0, self._torque_id, False, False, False, None, codec.DLC, self._q_payload)
+            self._send_message(msg, "Set_Input_Torque")
+            return self._clock_ns()
         if len(codes) != N_AXES:
             raise ProtocolError(f"Set_Input_Torque: the ODrive profile drives 1 axis, got {len(codes)} codes")
         try:
@@ -282,9 +314,18 @@ class OdriveDriveLink(ClosingLink):
         """RTR Get_Encoder_Estimates, the trigger of the next sample: the drive answers with the
         estimates sampled on its arrival, which get the trigger's index as sequence number (with
         ``encoder_msg_rate_ms = 0``). Frames still queued are read (and judged) first."""
-        self.drain()
+        if self._closed:
+            self._check_open()
+        recv = self._bus.recv
+        while (msg := recv(0.0)) is not None:  # drain, inline
+            self._consume(msg)
         self._pending = None  # an answer not taken before the next trigger is late: not a sample
-        self._send(self._estimates_id, b"", "Get_Encoder_Estimates (RTR)", remote=True)
+        rtr = self._rtr
+        if rtr is None or not self._lockstep:
+            rtr = can.Message(0.0, self._estimates_id, False, True, False, None, codec.DLC, None)
+            if self._lockstep and self.fast:  # one RTR for every trigger: it has no data and
+                self._rtr = rtr  # nothing on the lockstep path changes a frame once sent
+        self._send_message(rtr, "Get_Encoder_Estimates (RTR)")
         self._triggers += 1
         self._answered = False
         return self._clock_ns()
@@ -400,6 +441,13 @@ class OdriveDriveLink(ClosingLink):
         if self._frame_hook is not None:
             self._frame_hook(msg, True)
         self.stats.rx_frames += 1
+        if (
+            self.fast
+            and msg.arbitration_id == self._estimates_id
+            and not (msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame)
+            and self._estimates_fast(msg, now_ns)
+        ):
+            return
         if msg.is_error_frame:
             self.stats.error_frames += 1
             self._event(now_ns, LinkEventKind.ERROR_FRAME, f"error frame {_describe(msg)}")
@@ -476,6 +524,45 @@ class OdriveDriveLink(ClosingLink):
             now_ns, seq, (counts,), (counts,), (counts / self._counts_per_unit,), enabled, fault, False
         )
 
+    def _estimates_fast(self, msg: can.Message, now_ns: int) -> bool:
+        """:meth:`_on_estimates` for the common lockstep case: the one answer to the last RTR, well
+        formed, after the first; False (nothing done) for anything else, which takes the general path."""
+        data = msg.data
+        if not (self._lockstep and self._rtr_mode) or self._answered or len(data) != codec.DLC:
+            return False
+        last_seq = self._seq
+        if last_seq is None:
+            return False
+        pos_turns, vel = _ESTIMATES.unpack(data)
+        if not (-math.inf < pos_turns < math.inf and -math.inf < vel < math.inf):
+            return False
+        counts = round(pos_turns * self._cpr)
+        if not -MAX_COUNTS <= counts <= MAX_COUNTS:
+            return False
+        stamp_ns = round(msg.timestamp * 1e9)
+        gap_ns = stamp_ns - self._last_stamp_ns
+        raw = bytes(data)
+        if gap_ns < 0 or (gap_ns == 0 and raw == self._last_data):
+            return False  # stale: the general path names it
+        self._answered = True
+        seq = (self._triggers - 1) % SEQ_MODULO
+        skipped = (seq - last_seq) % SEQ_MODULO
+        if skipped > 1:
+            self.stats.missed_feedback += skipped - 1
+        self._last_stamp_ns = stamp_ns
+        self._last_data = raw
+        self._seq = seq
+        hb = self._heartbeat
+        enabled = hb is not None and hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0
+        fault = hb is not None and hb.axis_error != 0
+        self.stats.feedback += 1
+        position = (counts / self._counts_per_unit,)
+        count_t = (counts,)
+        # Feedback(...) without NamedTuple's Python-level __new__ (the per-period path)
+        fb = (now_ns, seq, count_t, count_t, position, enabled, fault, False)
+        self._pending = tuple.__new__(Feedback, fb)
+        return True
+
     def _stale(self, now_ns: int, what: str) -> None:
         self.stats.stale_feedback += 1
         self._event(
@@ -529,18 +616,17 @@ class OdriveDriveLink(ClosingLink):
     # --- sending -----------------------------------------------------------------------------------
     def _send(self, arbitration_id: int, payload: bytes, what: str, *, remote: bool = False) -> None:
         self._check_open()
-        msg = can.Message(
-            arbitration_id=arbitration_id,
-            is_extended_id=False,
-            is_remote_frame=remote,
-            dlc=codec.DLC,
-            data=None if remote else payload,
-        )
+        data = None if remote else payload
+        msg = can.Message(0.0, arbitration_id, False, remote, False, None, codec.DLC, data)
+        self._send_message(msg, what)
+
+    def _send_message(self, msg: can.Message, what: str) -> None:
+        """Send ``msg`` (the link is open), count it and log it; DriveFault if the bus refuses it."""
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:
             self.stats.send_failures += 1
-            text = f"node {self._node}: sending {what} (id 0x{arbitration_id:03X}) failed: {exc}"
+            text = f"node {self._node}: sending {what} (id 0x{msg.arbitration_id:03X}) failed: {exc}"
             self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
             raise DriveFault(text) from exc
         self.stats.tx_frames += 1
