@@ -28,6 +28,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from typing import Any, cast
 
 import can
 
@@ -148,31 +149,32 @@ class OdriveLockstep:
         return False
 
     def _period_fast(self) -> None:
-        """:meth:`_run_period` with its estimates, in one call for the common case: closed loop, no
-        injected faults, a finite position. Anything else: the general
-        path (the same records: tests/odrive/test_fast_path.py)."""
+        """:meth:`_run_period` with its estimates (a host-clocked RTR after the first), in one call:
+        :meth:`OdriveCore.integrate_to` for one held current and :meth:`OdriveCore.period_boundary`
+        inline, in the same order (any other integration through the core). The same records as
+        the general path: tests/odrive/test_fast_path.py."""
         core = self.core
-        if core.faults is not None or core.axis_state is not _CLOSED_LOOP:
-            self._run_period()
-            return
-        # core.integrate_to, inline: one held current over the whole period
         t = core.time_ns
         t1 = t + core.period_ns
         path = core.path
-        if path.settle(t):
+        if path.settle(t):  # no current change due inside the period
             core.plant.advance(t, t1, path.held_A)
             core.time_ns = t1
         else:
             core.integrate_to(t1)
-        # core.period_boundary, inline (no faults, closed loop)
-        missed = 0 if core.fed else core.missed + 1
-        core.missed = missed
-        core.fed = False
-        if missed >= core.watchdog_periods:
-            core.set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, t1)
+        faults = core.faults
+        if faults is not None:
+            faults.on_period(cast(Any, core), t1 // core.period_ns)
+            core.silent = faults.silent
+        if core.axis_state is _CLOSED_LOOP:  # the watchdog
+            missed = 0 if core.fed else core.missed + 1
+            core.missed = missed
+            core.fed = False
+            if missed >= core.watchdog_periods:
+                core.set_error(ODriveError.WATCHDOG_TIMER_EXPIRED, t1)
         if t1 >= core.next_heartbeat_ns:
             core.heartbeat_if_due()
-        if core.out:  # a heartbeat (or the watchdog's error) goes out before the estimates
+        if core.out:  # a heartbeat (or an error's) goes out before the estimates
             self._send_outgoing()
         self._send_estimates()
 
@@ -195,28 +197,30 @@ class OdriveLockstep:
     def _send_estimates(self) -> None:
         """Get_Encoder_Estimates of this instant (unless lost or silenced) and its ground truth.
 
-        Fast path (:attr:`fast`, a two-state plant, no injected faults, a finite position):
+        Fast path (:attr:`fast`, a two-state plant, a finite position):
         :meth:`OdriveCore.estimates` and :meth:`OdriveCore.truth` inline, the same arithmetic in
         the same order; anything else samples through the core."""
         core = self.core
         rows = self._rows_2
         x = core.plant.state
         pos_unit = math.nan
-        if rows is not None and self.fast and core.faults is None:
+        if rows is not None and self.fast:
             c0, c1, v0, v1 = rows
             pos_unit = c0 * x[0] + c1 * x[1]  # plant.position() of a two-state plant
         if -math.inf < pos_unit < math.inf:
+            t = core.time_ns
+            faults = core.faults
+            offset_counts = 0 if faults is None else faults.counts(t // core.period_ns, 0)
             std = core.noise_std_counts
             noise_counts = core.rng.normal(0.0, std) if std > 0 else 0.0
             tpu = core.turns_per_unit
-            pos_turns = pos_unit * tpu + (0 + noise_counts) / core.cpr  # no injected offset: 0 counts
+            pos_turns = pos_unit * tpu + (offset_counts + noise_counts) / core.cpr
             vel_turns = sum((v0 * x[0], v1 * x[1])) * tpu  # the core's sum over C A x, same order
             core.stats.samples += 1
             if -_F32_MAX <= pos_turns <= _F32_MAX and -_F32_MAX <= vel_turns <= _F32_MAX:
                 payload = _ESTIMATES.pack(pos_turns, vel_turns)
             else:
                 payload = core.pack_estimates(pos_turns, vel_turns)
-            t = core.time_ns
             truth: GroundTruth | None = None
             if core.want_truth:  # core.truth(), inline
                 d = core.disturbance

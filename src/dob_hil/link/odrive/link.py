@@ -223,6 +223,8 @@ class OdriveDriveLink(ClosingLink):
         self._limit_A = drive.current_limit_A
         self._q_codes: tuple[int, ...] | None = None  # the codes quantize returned last ...
         self._q_payload = b""  # ... and their Set_Input_Torque payload
+        self._q_high = self._saturated(math.inf)  # (quantize's result, payload) beyond +limit
+        self._q_low = self._saturated(-math.inf)  # ... and beyond -limit
         self._rtr: can.Message | None = None  # lockstep: the RTR trigger, sent again every period
 
     # --- DriveLink ---------------------------------------------------------------------------------
@@ -270,6 +272,14 @@ class OdriveDriveLink(ClosingLink):
             # rounding by struct (the same C cast as numpy's); its bytes are the command's payload
             u = current_A[0]
             limit_A, kt = self._limit_A, self._kt
+            if limit_A < u < math.inf:  # saturated: the limit's command, computed once
+                result, self._q_payload = self._q_high
+                self._q_codes = result[0]
+                return result
+            if -math.inf < u < -limit_A:
+                result, self._q_payload = self._q_low
+                self._q_codes = result[0]
+                return result
             if -limit_A <= u <= limit_A:
                 try:
                     raw = _F32.pack(u * kt)
@@ -291,9 +301,15 @@ class OdriveDriveLink(ClosingLink):
             )
         return result
 
+    def _saturated(self, sign: float) -> tuple[tuple[tuple[int, ...], tuple[float, ...], bool], bytes]:
+        """(quantize's result, Set_Input_Torque payload) of a current beyond the limit (``sign``'s sign)."""
+        result = self._quantizer.quantize((math.copysign(2.0 * self._limit_A, sign),))
+        torque, _ = self._quantizer.torque_of(result[0][0])
+        return result, _TORQUE.pack(torque)
+
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """Set_Input_Torque of ``codes[0]`` (a float32 bit pattern, clamped at the limit)."""
-        if codes is self._q_codes:  # what quantize just returned: finite, within the limit
+        if codes is self._q_codes:  # what quantize just returned: finite, clamped at the limit
             if self._closed:
                 self._check_open()
             msg = can.Message(0.0, self._torque_id, False, False, False, None, codec.DLC, self._q_payload)
