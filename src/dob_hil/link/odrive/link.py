@@ -225,7 +225,10 @@ class OdriveDriveLink(ClosingLink):
         self._q_payload = b""  # ... and their Set_Input_Torque payload
         self._q_high = self._saturated(math.inf)  # (quantize's result, payload) beyond +limit
         self._q_low = self._saturated(-math.inf)  # ... and beyond -limit
-        self._rtr: can.Message | None = None  # lockstep: the RTR trigger, sent again every period
+        self._rtr: can.Message | None = None
+        self._fast_answer_id = -1  # lockstep, host-clocked, fast: the estimates' id (_estimates_fast)
+        self._hb_enabled = False  # the last heartbeat shows closed loop without errors
+        self._hb_fault = False  # ... shows axis errors  # lockstep: the RTR trigger, sent again every period
 
     # --- DriveLink ---------------------------------------------------------------------------------
     @property
@@ -419,6 +422,8 @@ class OdriveDriveLink(ClosingLink):
     def enable_lockstep(self, service: Callable[[], int], max_rounds: int = 3) -> None:
         """Enable against the embedded lockstep drive; from now on each estimate is one sample."""
         self._lockstep = True
+        if self.fast and self._rtr_mode:
+            self._fast_answer_id = self._estimates_id
         self.request_enable()
         for _ in range(max_rounds):
             service()
@@ -458,8 +463,7 @@ class OdriveDriveLink(ClosingLink):
             self._frame_hook(msg, True)
         self.stats.rx_frames += 1
         if (
-            self.fast
-            and msg.arbitration_id == self._estimates_id
+            msg.arbitration_id == self._fast_answer_id
             and not (msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame)
             and self._estimates_fast(msg, now_ns)
         ):
@@ -544,10 +548,8 @@ class OdriveDriveLink(ClosingLink):
         """:meth:`_on_estimates` for the common lockstep case: the one answer to the last RTR, well
         formed, after the first; False (nothing done) for anything else, which takes the general path."""
         data = msg.data
-        if not (self._lockstep and self._rtr_mode) or self._answered or len(data) != codec.DLC:
-            return False
         last_seq = self._seq
-        if last_seq is None:
+        if self._answered or last_seq is None or len(data) != codec.DLC:
             return False
         pos_turns, vel = _ESTIMATES.unpack(data)
         if not (-math.inf < pos_turns < math.inf and -math.inf < vel < math.inf):
@@ -568,14 +570,11 @@ class OdriveDriveLink(ClosingLink):
         self._last_stamp_ns = stamp_ns
         self._last_data = raw
         self._seq = seq
-        hb = self._heartbeat
-        enabled = hb is not None and hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0
-        fault = hb is not None and hb.axis_error != 0
         self.stats.feedback += 1
-        position = (counts / self._counts_per_unit,)
         count_t = (counts,)
+        position = (counts / self._counts_per_unit,)
         # Feedback(...) without NamedTuple's Python-level __new__ (the per-period path)
-        fb = (now_ns, seq, count_t, count_t, position, enabled, fault, False)
+        fb = (now_ns, seq, count_t, count_t, position, self._hb_enabled, self._hb_fault, False)
         self._pending = tuple.__new__(Feedback, fb)
         return True
 
@@ -594,6 +593,8 @@ class OdriveDriveLink(ClosingLink):
         self.stats.heartbeats += 1
         old = self._heartbeat
         self._heartbeat = hb
+        self._hb_enabled = hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0  # for _estimates_fast
+        self._hb_fault = hb.axis_error != 0
         if old is None or (old.axis_state, old.axis_error) != (hb.axis_state, hb.axis_error):
             before = "unknown" if old is None else old.axis_state.name
             self._event(
@@ -630,6 +631,13 @@ class OdriveDriveLink(ClosingLink):
             self._event_hook(LinkEvent(time_ns, kind, message))
 
     # --- sending -----------------------------------------------------------------------------------
+    def _send_failed(self, msg: can.Message, what: str, exc: can.CanError) -> DriveFault:
+        """Count and report a send the bus refused; the DriveFault to raise."""
+        self.stats.send_failures += 1
+        text = f"node {self._node}: sending {what} (id 0x{msg.arbitration_id:03X}) failed: {exc}"
+        self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
+        return DriveFault(text)
+
     def _send(self, arbitration_id: int, payload: bytes, what: str, *, remote: bool = False) -> None:
         self._check_open()
         data = None if remote else payload
@@ -641,10 +649,7 @@ class OdriveDriveLink(ClosingLink):
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:
-            self.stats.send_failures += 1
-            text = f"node {self._node}: sending {what} (id 0x{msg.arbitration_id:03X}) failed: {exc}"
-            self._event(self._clock_ns(), LinkEventKind.SEND_FAILED, text)
-            raise DriveFault(text) from exc
+            raise self._send_failed(msg, what, exc) from exc
         self.stats.tx_frames += 1
         if self._frame_hook is not None:
             self._frame_hook(msg, False)
