@@ -120,6 +120,8 @@ class OdriveCore:
         self.fed = False  # a torque input arrived in the current period
         self.next_heartbeat_ns = self.heartbeat_ns
         self.out: list[Outgoing] = []
+        self._heartbeat_key: tuple[int, AxisState] | None = None  # (axis error, state) last encoded
+        self._heartbeat_payload = b""
         self.faults = DriveFaults.from_config(config)
         self.silent = False
 
@@ -257,8 +259,11 @@ class OdriveCore:
                 self.next_heartbeat_ns += self.heartbeat_ns
 
     def heartbeat_now(self) -> None:
-        hb = codec.Heartbeat(self.axis_error, self.axis_state, 0, False)
-        self.out.append((self.heartbeat_id, codec.encode_heartbeat(hb)))
+        key = (self.axis_error, self.axis_state)
+        if key != self._heartbeat_key:  # encoded again only when the axis error or state changed
+            self._heartbeat_key = key
+            self._heartbeat_payload = codec.encode_heartbeat(codec.Heartbeat(*key, 0, False))
+        self.out.append((self.heartbeat_id, self._heartbeat_payload))
         self.stats.heartbeats_sent += 1
 
     def estimates(self) -> tuple[bytes, GroundTruth | None]:

@@ -225,10 +225,11 @@ class OdriveDriveLink(ClosingLink):
         self._q_payload = b""  # ... and their Set_Input_Torque payload
         self._q_high = self._saturated(math.inf)  # (quantize's result, payload) beyond +limit
         self._q_low = self._saturated(-math.inf)  # ... and beyond -limit
-        self._rtr: can.Message | None = None
+        self._rtr: can.Message | None = None  # lockstep: the RTR trigger, sent again every period
         self._fast_answer_id = -1  # lockstep, host-clocked, fast: the estimates' id (_estimates_fast)
         self._hb_enabled = False  # the last heartbeat shows closed loop without errors
-        self._hb_fault = False  # ... shows axis errors  # lockstep: the RTR trigger, sent again every period
+        self._hb_fault = False  # ... shows axis errors
+        self._hb_raw = b""  # the last heartbeat's payload (decoded: _heartbeat)
 
     # --- DriveLink ---------------------------------------------------------------------------------
     @property
@@ -585,13 +586,18 @@ class OdriveDriveLink(ClosingLink):
         )
 
     def _on_heartbeat(self, msg: can.Message, now_ns: int) -> None:
-        try:
-            hb = codec.decode_heartbeat(msg.data)
-        except ProtocolError as exc:
-            self._malformed(now_ns, msg, str(exc))
-            return
-        self.stats.heartbeats += 1
         old = self._heartbeat
+        raw = bytes(msg.data)
+        if old is not None and raw == self._hb_raw:
+            hb = old  # the same payload as the last heartbeat: the same decoded heartbeat
+        else:
+            try:
+                hb = codec.decode_heartbeat(raw)
+            except ProtocolError as exc:
+                self._malformed(now_ns, msg, str(exc))
+                return
+            self._hb_raw = raw
+        self.stats.heartbeats += 1
         self._heartbeat = hb
         self._hb_enabled = hb.axis_state == _CLOSED_LOOP and hb.axis_error == 0  # for _estimates_fast
         self._hb_fault = hb.axis_error != 0
