@@ -14,6 +14,15 @@ one integrates a period first (torque inputs in between act from the sample inst
 :meth:`OdriveLockstep.advance_period` runs a period without a torque input (estimates only if
 cyclic). ``sim.loss_probability`` drops estimates (seeded).
 
+The lockstep per-period path is fused (``FAST_PATH``, :attr:`OdriveLockstep.fast`): a
+well-formed Set_Input_Torque and an RTR are handled inside :meth:`OdriveLockstep.service`, a
+host-clocked period (integration with one held current, the period boundary, heartbeat) and its
+estimates and ground truth take two calls, with the core's arithmetic in the core's order. Any
+other frame, a current change inside the period, a plant of other than two states or a
+non-finite position takes the core's general methods. Both give the same frames, truth and
+counters (tests/odrive/test_fast_path.py runs them side by side); ``FAST_PATH = False`` forces
+the general path.
+
 Real time: a timer thread wakes on absolute deadlines ``t0 + k Ts``, integrates to ``k Ts``,
 closes the period and sends the cyclic estimates (if configured); a receive thread acts on each
 frame at its arrival (a torque acts from its arrival, an RTR is answered with the estimates

@@ -32,6 +32,15 @@ if rounding went past the limit. The command "code" is the float32's bit pattern
 exact, and what the log's ``dac_counts`` field records. Enabling: Clear_Errors (if asked),
 Set_Controller_Mode (TORQUE_CONTROL, PASSTHROUGH), Set_Axis_State CLOSED_LOOP_CONTROL, then wait
 for a heartbeat showing it. Safe stop: Set_Input_Torque 0, then Set_Axis_State IDLE.
+
+Per-period fast paths (``FAST_PATH``, :attr:`OdriveDriveLink.fast`; the same results as the
+general path, tests/odrive/test_fast_path.py): in lockstep with RTR triggers the answer to the
+outstanding trigger is judged in one call (anything unusual, a first, stale, malformed or
+unasked-for estimate, goes through the general checks); ``quantize`` rounds a current within the
+limit to float32 with ``struct`` (the same C cast as numpy's) and keeps the bytes, so that
+``send_command`` given those very codes sends them without converting back; a current beyond the
+limit gets the limit's command computed once; the lockstep RTR is one ``Message`` sent every
+period (it has no data, and nothing on the lockstep path changes a frame once sent).
 """
 
 from __future__ import annotations
