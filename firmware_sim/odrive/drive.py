@@ -6,6 +6,8 @@ drives it like the native simulated drive. The drive does not own the bus.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import can
 
 from dob_hil.config import Config
@@ -71,6 +73,13 @@ class SimulatedOdrive(ClockedDrive[OdriveLockstep, OdriveRealtime]):
             return self._realtime.snapshot()[2]
         assert self._lockstep is not None
         return self._lockstep.core.plant.state
+
+    def lockstep_period_index(self) -> Callable[[], int]:
+        """Lockstep: a cheap reader of :attr:`period_index` (the host-clocked runner reads it every
+        sample; no property chain)."""
+        core = self._need_lockstep("lockstep_period_index").core
+        period_ns = core.period_ns
+        return lambda: core.time_ns // period_ns
 
     @property
     def time_ns(self) -> int:
