@@ -200,8 +200,14 @@ class OdriveLockstep:
             self.truth_sink(truth)
 
     def advance_period(self) -> None:
-        """One period without a torque input; the estimates follow if they are cyclic."""
+        """One period without a torque input; the estimates follow if they are cyclic.
+
+        Host-clocked, this is a period whose trigger never arrived: its instant counts as taken,
+        so the next RTR is the next instant (it integrates a period first), as if this one had
+        been answered. Otherwise every later sample would be the previous instant's."""
         self._run_period(sample=self.core.cyclic)
+        if not self.core.cyclic:
+            self._sampled_at = self.core.time_ns
 
     def _send_estimates(self) -> None:
         """Get_Encoder_Estimates of this instant (unless lost or silenced) and its ground truth.
