@@ -30,7 +30,7 @@ def test_samples_after_lost_triggers_are_taken_at_their_own_instants(tmp_path: P
     true_at = dict(zip(truth["period_index"].tolist(), truth["state"][:, 0].tolist(), strict=True))
     quantum = 1.0 / config.drive.encoder_counts_per_unit
     answered = s[s["rx_time_ns"] != 0]
-    assert len(answered) >= len(s) - lost - 1
+    assert len(s) - lost - 1 <= len(answered) < len(s)  # the lost triggers went unanswered
     errors = [abs(float(row["position"][0]) - true_at[int(row["seq"])]) for row in answered]
     # the encoder's rounding at most, before and after the gap; a sample one period late would be
     # off by the distance the output moves in a period (many counts during the rise)
