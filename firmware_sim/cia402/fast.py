@@ -151,8 +151,10 @@ class FastPeriod:
         assert origin is not None  # the plan's precondition
         path, plant = core.path, core.plant
         tau = now_ns - origin
-        if path.settle(tau):
-            plant.advance(tau, t - origin, path.held_A)
+        if path.settle(tau):  # one current over the whole period (as _integrate_to would hold it)
+            held = path.held_A
+            if not plant.advance_2state(tau, t - origin, held):
+                plant.advance(tau, t - origin, held)
             core.time_ns = t
         else:
             core._integrate_to(t)
