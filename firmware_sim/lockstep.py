@@ -39,7 +39,6 @@ from firmware_sim.core import (
     TruthSink,
 )
 from firmware_sim.impairments import FeedbackImpairment
-from firmware_sim.plant import DISTURBANCE_BLOCK
 from firmware_sim.truth import GroundTruth
 
 _COMMAND = FrameResult.COMMAND
@@ -177,32 +176,18 @@ class LockstepClock:
         if saturated:
             stats.saturations += 1
         core.path.held_A = u
-        # --- the period's cells (PlantModel.advance -> _cells, the 2-state update) ---------------
-        p00, p01, p10, p11, g0, g1 = m2
-        x0, x1 = plant._x
-        substeps = plant.substeps
+        # --- the period's cells (PlantModel.advance, the unrolled 2-state update) ---------------
         disturbance = plant._disturbance
         try:
-            if disturbance.is_zero:
-                for _ in range(substeps):
-                    x0, x1 = p00 * x0 + p01 * x1 + g0 * u, p10 * x0 + p11 * x1 + g1 * u
-            else:
-                j0 = t // period_ns * substeps
-                block, o0 = divmod(j0, DISTURBANCE_BLOCK)
-                if block == plant._w_block_index and o0 + substeps <= DISTURBANCE_BLOCK:
-                    ws = plant._w_block[o0 : o0 + substeps]
-                else:
-                    ws = plant._w_cells(j0, j0 + substeps)
-                for w in ws:
-                    v = u + w
-                    x0, x1 = p00 * x0 + p01 * x1 + g0 * v, p10 * x0 + p11 * x1 + g1 * v
+            if not plant.advance_2state(t, t_end, u):  # 2 states, t on a period boundary: applies
+                plant.advance(t, t_end, u)
         except (OverflowError, ValueError, FloatingPointError):  # as DriveCore.lockstep_period
             core._physics_ok = False
             core.fault(FaultCode.ENCODER, 0, core.time_ns)
             core.time_ns = max(core.time_ns, t_end)
             self._finish_period(core)
             return True
-        plant._x = [x0, x1]
+        x0, x1 = plant._x
         core.time_ns = t_end
         watchdog = core.watchdog  # period_boundary(True): ENABLED, no heartbeat due
         watchdog.armed = True

@@ -24,6 +24,7 @@ position) discovered half-way hands the rest of the period to the general path's
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -54,6 +55,9 @@ _SW_OE = STATUS_BITS[_OE] | SW_REMOTE
 _ENABLED = DriveState.ENABLED
 _CW_ENABLE_OPERATION = 0x000F  # the command bits of "enable operation" (power._command)
 _I32_MIN, _I32_MAX = -(2**31), 2**31 - 1
+_floor = math.floor
+_new_tuple = tuple.__new__
+_Message = can.Message
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,8 +155,17 @@ class FastPeriod:
         assert origin is not None  # the plan's precondition
         path, plant = core.path, core.plant
         tau = now_ns - origin
-        if path.settle(tau):
-            plant.advance(tau, t - origin, path.held_A)
+        times = path._times_ns
+        if times and times[0] <= tau:  # CurrentPath.settle
+            if len(times) == 1:  # apply_due for the one change the previous SYNC scheduled
+                path.held_A = path._currents_A.pop()
+                times.pop()
+            else:
+                path.apply_due(tau)
+        if not times:  # one current over the whole period (as _integrate_to would hold it)
+            held = path.held_A
+            if not plant.advance_2state(tau, t - origin, held):
+                plant.advance(tau, t - origin, held)
             core.time_ns = t
         else:
             core._integrate_to(t)
@@ -163,14 +176,20 @@ class FastPeriod:
         if core._watch_armed:
             core._missed_rpdo = 0  # an RPDO came in this period
         held_A = path.held_A
-        # --- sample (Cia402Core._sample) ---
-        try:
-            counts = core.encoder.read(plant.position())
-        except ValueError:  # an encoder fault: the general path's tail does the rest
+        # --- sample (Cia402Core._sample, with Encoder.read inline) ---
+        position = plant.position()
+        if position - position != 0.0:  # not finite, an encoder fault: the general path's tail
             core._rpdo_since_sync = True
             core._pending.update(zip(RPDO_OBJECTS, (controlword, torque), strict=True))
             core._sync_tail(t, data[0] if data else None)  # the watchdog's share again: idempotent
             return True
+        encoder = core.encoder
+        counts = _floor(position * encoder.counts_per_unit + 0.5)
+        if encoder.noise_counts_std > 0.0:
+            counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
+        counts &= encoder._mask
+        if counts >= encoder._half:
+            counts -= encoder._span
         last_t = core._sample_t_ns
         if last_t is not None and t > last_t:
             step = ((counts - core.counts + 2**31) % 2**32) - 2**31
@@ -194,7 +213,14 @@ class FastPeriod:
         limit = core.max_torque
         clamped = -limit if effective < -limit else limit if effective > limit else effective
         core.saturated = clamped != effective
-        path.schedule(t - origin + core.extra_delay_ns, clamped * core.rated_current_mA * 1e-6)
+        t_apply = t - origin + core.extra_delay_ns
+        current_A = clamped * core.rated_current_mA * 1e-6
+        times = path._times_ns
+        if not times or t_apply >= times[-1]:  # CurrentPath.schedule's common case
+            times.append(t_apply)
+            path._currents_A.append(current_A)
+        else:
+            path.schedule(t_apply, current_A)
         core._rpdo_since_sync = False
         core._watch_armed = True
         # --- heartbeat first (sent from within the SYNC), then the TPDO and the truth (the flush) ---
@@ -209,12 +235,12 @@ class FastPeriod:
             try:
                 # positional: (timestamp, arbitration_id, is_extended_id, is_remote_frame,
                 # is_error_frame, channel, dlc, data), as canopen's Network.send_message builds it
-                self.bus.send(can.Message(0.0, plan.tpdo_id, False, False, False, None, None, payload))
+                self.bus.send(_Message(0.0, plan.tpdo_id, False, False, False, None, None, payload))
             except can.CanError:
                 core.network.send_failures += 1
             stats.tpdos_sent += 1
         sink = self.truth_sink
         if sink is not None:
             w = core.disturbance.value_A((t - origin) * 1e-9)
-            sink(tuple.__new__(GroundTruth, (period_index, t, plant.state, w, held_A, _ENABLED)))
+            sink(_new_tuple(GroundTruth, (period_index, t, tuple(plant._x), w, held_A, _ENABLED)))
         return True
