@@ -463,8 +463,9 @@ class LogWriter:
     def clocked_frame_hook(self, clock_ns: Callable[[], int]) -> Callable[[can.Message, bool], None]:
         """A link frame hook logging each frame at ``clock_ns()`` (lockstep: the simulated clock),
         owner thread only. The same records as :meth:`frame_raw`, built in one call per frame
-        (the per-period path); anything but a classic data frame of up to 8 bytes, and a subclass
-        that overrides :meth:`frame_raw`, goes through :meth:`frame_raw`."""
+        (the per-period path, an ODrive's RTR trigger included); anything but a classic data or
+        remote frame of up to 8 bytes, and a subclass that overrides :meth:`frame_raw`, goes
+        through :meth:`frame_raw`."""
         frame_raw = self.frame_raw
         pack = self._pack_can
         can_len = self._can_len
@@ -486,7 +487,6 @@ class LogWriter:
             if (
                 msg.is_extended_id
                 or msg.is_error_frame
-                or msg.is_remote_frame
                 or msg.is_fd
                 or len(data) > CAN_DATA_BYTES
                 or _get_ident() != self._owner
@@ -497,8 +497,8 @@ class LogWriter:
             n = self._seq_can
             try:
                 record = pack(
-                    OP_MESSAGE, can_len, CH_CAN, n & _U32, t, t, CDR_HEADER_U32, t,
-                    msg.arbitration_id, CAN_RX if is_rx else CAN_TX, msg.dlc, 0, data,
+                    OP_MESSAGE, can_len, CH_CAN, n & _U32, t, t, CDR_HEADER_U32, t, msg.arbitration_id,
+                    CAN_RX if is_rx else CAN_TX, msg.dlc, CAN_FLAG_REMOTE if msg.is_remote_frame else 0, data,
                 )  # fmt: skip
             except struct.error:
                 general(msg, is_rx)  # frame_raw names what did not pack
