@@ -151,7 +151,7 @@ class PlantModel:
         boundaries (always so for a lockstep period). Otherwise False with nothing changed, and the
         caller takes :meth:`advance`.
 
-        The per-period hot path of the lockstep drives (native and CiA 402). As :meth:`advance`, an
+        The per-period hot path of the lockstep drives (native, CiA 402 and ODrive). As :meth:`advance`, an
         arithmetic error in the update (overflow) propagates with the state unchanged."""
         m2 = self._m2
         S, P = self.substeps, self.period_ns

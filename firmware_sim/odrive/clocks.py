@@ -167,7 +167,10 @@ class OdriveLockstep:
         t1 = t + core.period_ns
         path = core.path
         if path.settle(t):  # no current change due inside the period
-            core.plant.advance(t, t1, path.held_A)
+            plant = core.plant
+            held_A = path.held_A
+            if not plant.advance_2state(t, t1, held_A):  # the shared 2-state cells, else the general
+                plant.advance(t, t1, held_A)
             core.time_ns = t1
         else:
             core.integrate_to(t1)
