@@ -1,0 +1,70 @@
+"""Review 16: the native lockstep fused period (LockstepClock._exchange) against the general path
+(LockstepClock.fused = False) at states its entry check lets through."""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import can
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "firmware_sim"))
+
+from fs_support import make_config  # noqa: E402
+
+from dob_hil.link.protocol import (  # noqa: E402
+    CommandFrame,
+    ControlFrame,
+    ControlRequest,
+    encode_command,
+    encode_control,
+)
+from dob_hil.loop.inproc_bus import InProcessBus  # noqa: E402
+from firmware_sim.lockstep import LockstepClock  # noqa: E402
+
+
+def _enabled_clock(fused: bool) -> tuple[LockstepClock, deque[Any], deque[Any], list[Any]]:
+    cfg = make_config()
+    truths: list[Any] = []
+    to_drive: deque[Any] = deque()
+    from_drive: deque[Any] = deque()
+    clock = LockstepClock(InProcessBus("t", to_drive, from_drive), cfg, truths.append)
+    clock.fused = fused
+    enable = encode_control(ControlFrame(ControlRequest.ENABLE))
+    to_drive.append(can.Message(arbitration_id=clock.core.control_id, data=enable, is_extended_id=False))
+    clock.service()
+    return clock, to_drive, from_drive, truths
+
+
+def _run(fused: bool, x: list[float]) -> tuple[Any, ...]:
+    clock, to_drive, from_drive, truths = _enabled_clock(fused)
+    from_drive.clear()
+    clock.core.plant._x = list(x)
+    seq = clock.core.last_seq
+    assert seq is not None
+    payload = encode_command(CommandFrame(0, seq & 0x7F, True))
+    to_drive.append(can.Message(arbitration_id=clock.core.command_id, data=payload, is_extended_id=False))
+    try:
+        clock.service()
+        error = None
+    except Exception as exc:  # the fused path must not raise where the general path faults
+        error = type(exc).__name__
+    core = clock.core
+    frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
+    return error, core.state, core.time_ns, frames, vars(core.stats), core.path.held_A
+
+
+def test_encoder_overflow_of_a_finite_position_faults_like_the_general_path() -> None:
+    """A finite plant position whose counts overflow (position * counts_per_unit = inf):
+    Encoder.read raises OverflowError, which DriveCore.sample (general path) turns into an
+    ENCODER fault (FAULT frame, FEEDBACK with the fault status, zero current, disabled). The fused
+    _exchange checks only ``position - position != 0.0`` and then calls math.floor on the
+    infinite product itself, so OverflowError escapes service() with the period half done (no
+    fault, the drive still ENABLED, no FEEDBACK)."""
+    x = [1.0e306, 0.0]
+    general = _run(False, x)
+    fused = _run(True, x)
+    assert general[0] is None  # the general path handles it: an encoder fault
+    assert fused == general
