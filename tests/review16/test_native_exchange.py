@@ -68,3 +68,42 @@ def test_encoder_overflow_of_a_finite_position_faults_like_the_general_path() ->
     fused = _run(True, x)
     assert general[0] is None  # the general path handles it: an encoder fault
     assert fused == general
+
+
+def _runaway(fused: bool) -> tuple[Any, ...]:
+    """An unstable plant held at a constant command until its position runs away."""
+    cfg = make_config(plant={"A": [[1.0e4, 1.0], [0.0, 0.0]]}, sim={"disturbance": []})
+    truths: list[Any] = []
+    to_drive: deque[Any] = deque()
+    from_drive: deque[Any] = deque()
+    clock = LockstepClock(InProcessBus("t", to_drive, from_drive), cfg, truths.append)
+    clock.fused = fused
+    enable = encode_control(ControlFrame(ControlRequest.ENABLE))
+    to_drive.append(can.Message(arbitration_id=clock.core.control_id, data=enable, is_extended_id=False))
+    clock.service()
+    error = None
+    for _ in range(600):
+        seq = clock.core.last_seq
+        assert seq is not None
+        payload = encode_command(CommandFrame(100, seq & 0x7F, True))
+        to_drive.append(can.Message(arbitration_id=clock.core.command_id, data=payload, is_extended_id=False))
+        try:
+            clock.service()
+        except Exception as exc:
+            error = type(exc).__name__
+            break
+    core = clock.core
+    frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
+    return error, core.state, core.path.held_A, frames, vars(core.stats), len(truths)
+
+
+def test_a_runaway_plant_faults_the_fused_drive_as_the_general_one() -> None:
+    """A runaway (an unstable plant under a constant command): on the general path the position
+    passes through the range where it is finite but its encoder counts overflow, Encoder.read
+    raises OverflowError and the drive takes an ENCODER fault (FAULT state, zero current, the
+    later commands refused). The fused path lets the OverflowError escape LockstepClock.service,
+    ending the session with the drive still ENABLED at its commanded current instead of faulted."""
+    general = _runaway(False)
+    fused = _runaway(True)
+    assert general[0] is None and general[2] == 0.0
+    assert fused == general
