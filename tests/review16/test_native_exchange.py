@@ -12,17 +12,17 @@ import can
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "firmware_sim"))
 
-from fs_support import make_config  # noqa: E402
+from fs_support import make_config
 
-from dob_hil.link.protocol import (  # noqa: E402
+from dob_hil.link.protocol import (
     CommandFrame,
     ControlFrame,
     ControlRequest,
     encode_command,
     encode_control,
 )
-from dob_hil.loop.inproc_bus import InProcessBus  # noqa: E402
-from firmware_sim.lockstep import LockstepClock  # noqa: E402
+from dob_hil.loop.inproc_bus import InProcessBus
+from firmware_sim.lockstep import LockstepClock
 
 
 def _enabled_clock(fused: bool) -> tuple[LockstepClock, deque[Any], deque[Any], list[Any]]:
@@ -39,7 +39,7 @@ def _enabled_clock(fused: bool) -> tuple[LockstepClock, deque[Any], deque[Any], 
 
 
 def _run(fused: bool, x: list[float]) -> tuple[Any, ...]:
-    clock, to_drive, from_drive, truths = _enabled_clock(fused)
+    clock, to_drive, from_drive, _truths = _enabled_clock(fused)
     from_drive.clear()
     clock.core.plant._x = list(x)
     seq = clock.core.last_seq
