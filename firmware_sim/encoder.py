@@ -39,11 +39,14 @@ class Encoder:
     def read(self, position: float) -> int:
         """The counter value latched at ``position``: rounded, noisy if configured, wrapped.
 
-        Raises ValueError for a non-finite position (the drive reports an encoder fault).
+        Raises ValueError for a position that is not finite or that no count can represent (a
+        finite position whose count overflows a float: a runaway plant); the drive reports an
+        encoder fault.
         """
-        if position - position != 0.0:  # NaN or +-inf (math.isfinite without the call)
-            raise ValueError(f"encoder position is not finite: {position}")
-        counts = math.floor(position * self.counts_per_unit + 0.5)
+        scaled = position * self.counts_per_unit + 0.5
+        if scaled - scaled != 0.0:  # NaN or +-inf (math.isfinite without the call)
+            raise ValueError(f"encoder position is not finite or beyond any count: {position}")
+        counts = math.floor(scaled)
         if self.noise_counts_std > 0.0:
             counts += math.floor(self._rng.gauss(0.0, self.noise_counts_std) + 0.5)
         v = counts & self._mask  # wrap_counts(counts, self.bits)

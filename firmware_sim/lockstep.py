@@ -195,11 +195,12 @@ class LockstepClock:
         # --- the sample (DriveCore.sample) --------------------------------------------------------
         c = plant._c
         position = c[0] * x0 + c[1] * x1  # PlantModel.position
-        if position - position != 0.0:  # not finite: the encoder faults (DriveCore.sample)
+        encoder = core.encoder  # Encoder.read
+        scaled = position * encoder.counts_per_unit + 0.5
+        if scaled - scaled != 0.0:  # not finite, or beyond any count: the encoder faults (DriveCore.sample)
             self._finish_period(core)
             return True
-        encoder = core.encoder  # Encoder.read
-        counts = _floor(position * encoder.counts_per_unit + 0.5)
+        counts = _floor(scaled)
         if encoder.noise_counts_std > 0.0:
             counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
         counts &= encoder._mask

@@ -178,13 +178,14 @@ class FastPeriod:
         held_A = path.held_A
         # --- sample (Cia402Core._sample, with Encoder.read inline) ---
         position = plant.position()
-        if position - position != 0.0:  # not finite, an encoder fault: the general path's tail
+        encoder = core.encoder
+        scaled = position * encoder.counts_per_unit + 0.5
+        if scaled - scaled != 0.0:  # not finite or beyond any count, an encoder fault: the general tail
             core._rpdo_since_sync = True
             core._pending.update(zip(RPDO_OBJECTS, (controlword, torque), strict=True))
             core._sync_tail(t, data[0] if data else None)  # the watchdog's share again: idempotent
             return True
-        encoder = core.encoder
-        counts = _floor(position * encoder.counts_per_unit + 0.5)
+        counts = _floor(scaled)
         if encoder.noise_counts_std > 0.0:
             counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
         counts &= encoder._mask

@@ -1,17 +1,13 @@
-"""Review 16: the native lockstep fused period (LockstepClock._exchange) against the general path
-(LockstepClock.fused = False) at states its entry check lets through."""
+"""The native lockstep fused period (LockstepClock._exchange) against the general path
+(LockstepClock.fused = False) at a runaway position: a finite position whose count overflows is
+an ENCODER fault (zero current, FAULT) on both, never an exception out of the drive."""
 
 from __future__ import annotations
 
-import sys
 from collections import deque
-from pathlib import Path
 from typing import Any
 
 import can
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "firmware_sim"))
-
 from fs_support import make_config
 
 from dob_hil.link.protocol import (

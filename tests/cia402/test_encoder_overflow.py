@@ -1,17 +1,13 @@
-"""Review 16: the simulated CiA 402 lockstep drive at a runaway position (both its fused SYNC,
-firmware_sim/cia402/fast.py, and its general path)."""
+"""The simulated CiA 402 lockstep drive at a runaway position (its fused SYNC,
+firmware_sim/cia402/fast.py, and its general path): an encoder fault (EMCY 0x7305, FAULT, torque
+cut), never an exception out of the drive."""
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import can
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cia402"))
-
 from sim_support import NODE, make_config, sdo_request
 
 from dob_hil.link.cia402 import codec
