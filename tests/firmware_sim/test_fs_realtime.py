@@ -107,23 +107,33 @@ def test_host_loop_enables_and_commands_in_real_time(bus_pair: tuple[can.BusABC,
 
 
 def test_watchdog_trips_once_armed_by_a_first_command(bus_pair: tuple[can.BusABC, can.BusABC]) -> None:
+    """50 periods of watchdog (so 50 ms to answer a feedback: a loaded machine once took more than
+    the 5 ms of a 5-period watchdog, the answer was stale and the unarmed watchdog tripped with
+    info 0). The host answers the newest ENABLED feedback until the drive accepts one, then falls
+    silent: the trip's info is the 50 periods missed."""
     host_bus, drive_bus = bus_pair
     host = Host(host_bus)
     with SimulatedDrive(
-        drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 5}), clock="realtime"
+        drive_bus, make_config(plant=PLANT, drive={"watchdog_periods": 50}), clock="realtime"
     ) as drive:
         host.control(ControlRequest.ENABLE)
         frames = host.wait_for(HeartbeatFrame, timeout_s=PATIENCE_S)
-        while True:  # answer the first feedback that reports ENABLED, then fall silent
+        deadline = time.monotonic() + PATIENCE_S
+        while drive.stats.commands_accepted == 0 and drive.state is not DriveState.FAULT:
+            assert time.monotonic() < deadline, "no command accepted"
             fb = host.wait_for(FeedbackFrame)[-1]
             assert isinstance(fb, FeedbackFrame)
             if fb.status & Status.ENABLED:
+                judged = drive.stats.commands_accepted + drive.stats.commands_stale
                 host.command(0, fb.seq)
-                break
+                while drive.stats.commands_accepted + drive.stats.commands_stale == judged:
+                    assert time.monotonic() < deadline, "the command was never judged"
+                    time.sleep(0.001)
+        assert drive.stats.commands_accepted == 1
         frames = host.wait_for(FaultFrame, timeout_s=PATIENCE_S)
         frames += host.wait_for(FeedbackFrame)
         assert drive.state is DriveState.FAULT
-    assert FaultFrame(FaultCode.WATCHDOG, 5) in frames
+    assert FaultFrame(FaultCode.WATCHDOG, 50) in frames
     assert feedbacks(frames)[-1].status == Status.FAULT | Status.WATCHDOG  # type: ignore[arg-type]
 
 

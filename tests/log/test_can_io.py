@@ -143,20 +143,32 @@ def _netns_available() -> str | None:
 
 
 DRIVER = """
-import can, signal, subprocess, sys, time
+import can, os, select, signal, subprocess, sys, time
 port, out = int(sys.argv[1]), sys.argv[2]
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "add", "224.0.0.0/4", "dev", "lo"], check=True)
 logger = subprocess.Popen(
     [sys.executable, "-u", "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.9",
      "--bus-kwargs", f"port={port}", "-f", out],
-    stdout=subprocess.PIPE, text=True,
+    stdout=subprocess.PIPE,
 )
+rc = 1
 try:
     assert logger.stdout is not None
-    for line in logger.stdout:  # python-can's logger prints this once its bus is open
-        if line.startswith("Can Logger"):
-            break
+    fd = logger.stdout.fileno()  # read raw: a buffered reader would hide lines from select
+    deadline = time.monotonic() + 90.0
+    seen = b""
+    started = False
+    while not started and time.monotonic() < deadline:  # the logger prints this once its bus is open
+        ready, _, _ = select.select([fd], [], [], 1.0)
+        if ready:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break  # the logger exited
+            seen += chunk
+            started = b"Can Logger" in seen
+    if not started:
+        sys.exit(f"the logger did not start within 90 s (exit status {logger.poll()}; it printed {seen!r})")
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port, receive_own_messages=False)
     for i in range(20):
         bus.send(can.Message(arbitration_id=0x300 + i, data=bytes([i] * 4), is_extended_id=False))
@@ -164,8 +176,15 @@ try:
     time.sleep(3.0)  # the logger's recv(1) loop takes what is queued (it may be starved for a while)
     bus.shutdown()
 finally:
+    # never leave the logger running: it holds this process's stderr, which the test reads to EOF
     logger.send_signal(signal.SIGINT)
-    sys.exit(logger.wait(timeout=60))
+    try:
+        rc = logger.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        logger.kill()
+        logger.wait()
+        print("the logger did not stop within 60 s of SIGINT; killed", file=sys.stderr)
+sys.exit(rc)
 """
 
 
@@ -180,7 +199,7 @@ def test_python_can_logger_cli_records_a_bus_to_mcap(tmp_path: Path) -> None:
     driver.write_text(DRIVER)
     port = 47000 + (hash(str(tmp_path)) % 2000)
     done = subprocess.run(["unshare", "-n", sys.executable, str(driver), str(port), str(out)],
-                          capture_output=True, text=True, timeout=180, check=False)  # fmt: skip
+                          capture_output=True, text=True, timeout=240, check=False)  # fmt: skip
     assert done.returncode == 0 and out.exists(), done.stderr
     got = list(can.LogReader(str(out)))
     assert [m.arbitration_id for m in got] == [0x300 + i for i in range(20)], done.stderr
