@@ -144,6 +144,9 @@ def _netns_available() -> str | None:
 
 DRIVER = """
 import can, os, select, signal, subprocess, sys, time
+# the logger stops on KeyboardInterrupt, which Python raises only if SIGINT was not ignored when it
+# started: a shell's background job (CI scripts) ignores SIGINT, and children inherit that
+signal.signal(signal.SIGINT, signal.SIG_DFL)
 port, out = int(sys.argv[1]), sys.argv[2]
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "add", "224.0.0.0/4", "dev", "lo"], check=True)
