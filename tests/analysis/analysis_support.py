@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 
 from dob_hil.config import parse_config_text
@@ -77,3 +79,24 @@ def reread(path: Path) -> LogData:
 
 
 EditFn = Callable[[np.ndarray], None]
+
+
+class Receiver(threading.Thread):
+    """Collects frames from a virtual channel until ``expected`` arrived or 10 s passed quiet (the
+    receiving end of ``replay --to-bus`` tests)."""
+
+    def __init__(self, channel: str, expected: int) -> None:
+        super().__init__(daemon=True)
+        self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        self.expected = expected
+        self.got: list[can.Message] = []
+
+    def run(self) -> None:
+        try:
+            while len(self.got) < self.expected:
+                msg = self.bus.recv(10.0)
+                if msg is None:
+                    return
+                self.got.append(msg)
+        finally:
+            self.bus.shutdown()

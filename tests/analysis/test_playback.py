@@ -5,12 +5,12 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import threading
 from pathlib import Path
 
 import can
 import numpy as np
 import pytest
+from analysis_support import Receiver
 
 from dob_hil.analysis.bus_usage import counted_frames
 from dob_hil.analysis.frames import frame_messages
@@ -20,26 +20,6 @@ from dob_hil.link.protocol import FrameKind, split_id
 from dob_hil.log import read_log
 
 _channels = itertools.count()
-
-
-class Receiver(threading.Thread):
-    """Collects frames from a virtual channel until ``expected`` arrived or 10 s passed."""
-
-    def __init__(self, channel: str, expected: int) -> None:
-        super().__init__(daemon=True)
-        self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self.expected = expected
-        self.got: list[can.Message] = []
-
-    def run(self) -> None:
-        try:
-            while len(self.got) < self.expected:
-                msg = self.bus.recv(10.0)
-                if msg is None:
-                    return
-                self.got.append(msg)
-        finally:
-            self.bus.shutdown()
 
 
 def _expected(path: Path) -> list[can.Message]:

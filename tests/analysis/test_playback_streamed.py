@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ import can
 import numpy as np
 import numpy.typing as npt
 import pytest
+from analysis_support import Receiver
 
 from dob_hil.analysis import playback
 from dob_hil.analysis.frames import frame_messages
@@ -112,26 +112,6 @@ def _expected(path: Path, direction: int | None = None) -> tuple[list[can.Messag
 
 def _key(m: can.Message) -> tuple[int, bytes, bool]:
     return (m.arbitration_id, bytes(m.data), m.is_fd)
-
-
-class Receiver(threading.Thread):
-    """Collects frames from a virtual channel until ``expected`` arrived or 10 s passed quiet."""
-
-    def __init__(self, channel: str, expected: int) -> None:
-        super().__init__(daemon=True)
-        self.bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self.expected = expected
-        self.got: list[can.Message] = []
-
-    def run(self) -> None:
-        try:
-            while len(self.got) < self.expected:
-                msg = self.bus.recv(10.0)
-                if msg is None:
-                    return
-                self.got.append(msg)
-        finally:
-            self.bus.shutdown()
 
 
 def _old_gaps(expected: list[can.Message]) -> tuple[int, dict[str, float | int] | None]:
