@@ -49,7 +49,7 @@ import numpy.typing as npt
 
 from dob_hil.analysis.bus_usage import bus_load
 from dob_hil.analysis.loaded import LoadedLog
-from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
+from dob_hil.analysis.rerun import skipped_ranges
 from dob_hil.analysis.signals import Signals, derive_signals
 from dob_hil.log.schemas import FLAG_OVERRUN, FLAG_SATURATED
 
@@ -110,13 +110,7 @@ def gap_accounting(seq: npt.NDArray[np.int64], events: list[dict[str, Any]]) -> 
         return 0, 0
     lo = seq[at] + 1  # first absent seq of each gap
     hi = seq[at + 1]  # one past the last
-    ranges = []
-    for ev in events:
-        data = ev.get("data")
-        if ev.get("kind") in SKIP_EVENT_KINDS and isinstance(data, dict):
-            first, count = data.get("first_sample"), data.get("count")
-            if isinstance(first, int) and isinstance(count, int) and count > 0:
-                ranges.append((first, first + count))
+    ranges = skipped_ranges(events)
     absent = int(np.sum(hi - lo))
     if not ranges:
         return 0, absent

@@ -60,16 +60,27 @@ class Rerun:
     resyncs: list[int]  # seq of the samples where the chain restarted from the log
 
 
-def explained_gaps(events: list[dict[str, Any]]) -> set[int]:
-    """Sequence numbers at which the runner resumed after samples it skipped on purpose."""
-    resumed: set[int] = set()
+def skip_events(events: list[dict[str, Any]]) -> list[tuple[int, int]]:
+    """(first sample, count) of each runner event saying samples were skipped on purpose
+    (:data:`SKIP_EVENT_KINDS` with integer ``first_sample`` and ``count``)."""
+    out: list[tuple[int, int]] = []
     for ev in events:
         data = ev.get("data")
         if ev.get("kind") in SKIP_EVENT_KINDS and isinstance(data, dict):
             first, count = data.get("first_sample"), data.get("count")
             if isinstance(first, int) and isinstance(count, int):
-                resumed.add(first + count)
-    return resumed
+                out.append((first, count))
+    return out
+
+
+def skipped_ranges(events: list[dict[str, Any]]) -> list[tuple[int, int]]:
+    """The half-open sequence ranges the runner skipped on purpose (non-empty ones only)."""
+    return [(first, first + count) for first, count in skip_events(events) if count > 0]
+
+
+def explained_gaps(events: list[dict[str, Any]]) -> set[int]:
+    """Sequence numbers at which the runner resumed after samples it skipped on purpose."""
+    return {first + count for first, count in skip_events(events)}
 
 
 class RerunChain:
