@@ -162,14 +162,22 @@ def bus_load(
     in_window &= ts <= end
     in_window &= counted_frames(frames)
     histogram = np.bincount(frame_classes(frames)[in_window], minlength=len(_WORST))
-    worst_bits = int(histogram @ _WORST)
-    nominal_bits = int(histogram @ _NOMINAL)
-    n_frames = int(histogram.sum())
-    duration_s = n_periods * period_ns * 1e-9
     fd_in = 0
     if len(fd_frames):
         fts = fd_frames["timestamp_ns"]
         fd_in = int(np.count_nonzero((fts >= start) & (fts <= end)))
+    return load_figures(histogram, n_periods, period_ns, bitrate_bps, fd_in)
+
+
+def load_figures(
+    histogram: npt.NDArray[np.int64], n_periods: int, period_ns: int, bitrate_bps: int, fd_frames: int
+) -> dict[str, Any]:
+    """The keys of :func:`bus_load` from the counted frames of a window of ``n_periods`` periods
+    (``histogram``: frames per class of :func:`frame_classes`) and the FD frames in it."""
+    worst_bits = int(histogram @ _WORST)
+    nominal_bits = int(histogram @ _NOMINAL)
+    n_frames = int(histogram.sum())
+    duration_s = n_periods * period_ns * 1e-9
     return {
         "worst_case": worst_bits / bitrate_bps / duration_s,
         "nominal": nominal_bits / bitrate_bps / duration_s,
@@ -177,5 +185,5 @@ def bus_load(
         "frames_per_period": n_frames / n_periods,
         "bits_per_period_worst_case": worst_bits / n_periods,
         "bitrate_bps": int(bitrate_bps),
-        "fd_frames": fd_in,
+        "fd_frames": fd_frames,
     }

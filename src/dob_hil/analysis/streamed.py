@@ -42,7 +42,7 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from dob_hil.analysis.bus_usage import _NOMINAL, _WORST, _offset_against, frame_classes
+from dob_hil.analysis.bus_usage import _WORST, _offset_against, frame_classes, load_figures
 from dob_hil.analysis.int_distribution import IntCounts
 from dob_hil.analysis.loaded import ANALYSIS_FIELDS, LoadedLog, SampleSummary, interpret
 from dob_hil.analysis.metrics import (
@@ -53,7 +53,7 @@ from dob_hil.analysis.metrics import (
     non_finite_rows,
     out_of_sequence,
 )
-from dob_hil.analysis.rerun import SKIP_EVENT_KINDS
+from dob_hil.analysis.rerun import skipped_ranges
 from dob_hil.analysis.signals import encoder_quantum
 from dob_hil.analysis.truth_match import SCORE_SAMPLES, _Index
 from dob_hil.log.schemas import (
@@ -422,22 +422,9 @@ def _bus_result(log: LoadedLog, sv: Survey, plan: _BusPlan, path: Path) -> dict[
             for b in stream.blocks():
                 window.add(b.frames, b.fd_frames)
     histogram, fd_in = window.finish(start, end)
-    n_periods = sv.n - first
-    worst_bits = int(histogram @ _WORST)
-    nominal_bits = int(histogram @ _NOMINAL)
-    n_frames = int(histogram.sum())
-    duration_s = n_periods * log.period_ns * 1e-9
     bitrate = log.bitrate_bps
     assert bitrate
-    return {
-        "worst_case": worst_bits / bitrate / duration_s,
-        "nominal": nominal_bits / bitrate / duration_s,
-        "frames": n_frames,
-        "frames_per_period": n_frames / n_periods,
-        "bits_per_period_worst_case": worst_bits / n_periods,
-        "bitrate_bps": int(bitrate),
-        "fd_frames": fd_in,
-    }
+    return load_figures(histogram, sv.n - first, log.period_ns, bitrate, fd_in)
 
 
 # ---------------------------------------------------------------------------------- truth join
@@ -726,13 +713,7 @@ def _ranks_of_valid(n_valid: int) -> IntArray:
 
 
 def _covered(events: list[dict[str, Any]]) -> Callable[[IntArray], IntArray] | None:
-    ranges = []
-    for ev in events:
-        data = ev.get("data")
-        if ev.get("kind") in SKIP_EVENT_KINDS and isinstance(data, dict):
-            first, count = data.get("first_sample"), data.get("count")
-            if isinstance(first, int) and isinstance(count, int) and count > 0:
-                ranges.append((first, first + count))
+    ranges = skipped_ranges(events)
     return _covered_below(ranges) if ranges else None
 
 
