@@ -73,15 +73,15 @@ def _design(log: LoadedLog, other: str, as_json: bool) -> int:
     """``--design``: the samples streamed block by block (memory bounded whatever the log's length)."""
     from dob_hil.analysis.replay import redesign_blocks
     from dob_hil.analysis.replay_plot import plot_redesign
-    from dob_hil.commands.analyze import indexed_samples
-    from dob_hil.log.reader import iter_channel
     from dob_hil.log.schemas import TOPIC_SAMPLE
-    from dob_hil.log.stream import return_large_buffers_to_the_os
+    from dob_hil.log.stream import open_stream, return_large_buffers_to_the_os
 
     return_large_buffers_to_the_os()
     design = load_other_design(other, log.dob_enabled)
-    total = indexed_samples(log.path)
-    result = redesign_blocks(log, iter_channel(log.path, TOPIC_SAMPLE), design, total_samples=total)
+    with open_stream(log.path, {TOPIC_SAMPLE: None}, events=False) as stream:  # one map of the file
+        blocks = (b.samples for b in stream.blocks())
+        total = stream.counts.get(TOPIC_SAMPLE, 0)  # from the message indexes
+        result = redesign_blocks(log, blocks, design, total_samples=total)
     if result.samples == 0:
         raise _no_samples(log, "re-run")
     _warn(log)
