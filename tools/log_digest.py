@@ -14,16 +14,13 @@ without wall-clock fields). Run it before and after a change and compare the out
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
-
 from dob_hil.config import Config, load_config
-from dob_hil.log.reader import read_log
+from dob_hil.log.digest import log_digest
 from dob_hil.loop.session import RunOptions, run_session
 from dob_hil.scenarios import scenario_path
 
@@ -43,21 +40,6 @@ def cases(name: str) -> Iterator[tuple[str, Config]]:
         yield f"{name}+noise+loss", dataclasses.replace(config, sim=sim)
 
 
-def digest(path: Path) -> str:
-    data = read_log(path)
-    h = hashlib.sha256()
-    s = data.samples
-    for name in s.dtype.names or ():
-        if name != "compute_ns":
-            h.update(np.ascontiguousarray(s[name]).tobytes())
-    for records in (data.frames, data.fd_frames, data.truth):
-        h.update(np.ascontiguousarray(records).tobytes())
-    for event in data.events:
-        h.update(repr(sorted((k, v) for k, v in event.items() if k != "wall_time_ns")).encode())
-    counts = f"samples={len(s)} frames={len(data.frames)} truth={len(data.truth)} events={len(data.events)}"
-    return f"{counts} {h.hexdigest()[:16]}"
-
-
 def main(argv: list[str]) -> int:
     only = set(argv)
     with tempfile.TemporaryDirectory(prefix="log-digest-") as tmp:
@@ -67,7 +49,7 @@ def main(argv: list[str]) -> int:
             for label, config in cases(scenario):
                 path = Path(tmp) / f"{label}.mcap"
                 run_session(config, RunOptions(duration_s=DURATION_S, log_path=path))
-                print(f"{label:32s} {digest(path)}", flush=True)
+                print(f"{label:32s} {log_digest(path)}", flush=True)
     return 0
 
 
