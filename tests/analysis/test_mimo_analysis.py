@@ -147,23 +147,6 @@ def test_json_per_axis_keys_through_the_cli(
         assert len(r[key]) == 2
 
 
-@pytest.fixture()
-def figures(monkeypatch: pytest.MonkeyPatch) -> Any:
-    kept: dict[str, Any] = {}
-
-    def keep(plt: Any, fig: Any, out: Path) -> Path:
-        fig.savefig(out, dpi=plots.DPI, bbox_inches="tight")
-        kept[out.name] = fig
-        return out
-
-    monkeypatch.setattr(plots, "_save", keep)
-    yield kept
-    import matplotlib.pyplot as plt
-
-    for fig in kept.values():
-        plt.close(fig)
-
-
 def _titles(fig: Any) -> list[str]:
     return [ax.get_title() for ax in fig.axes]
 

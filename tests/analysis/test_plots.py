@@ -19,24 +19,6 @@ from dob_hil.analysis.signals import derive_signals
 UNIT = re.compile(r"\[[^\]]+\]")
 
 
-@pytest.fixture()
-def figures(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
-    """The figures plots.py saves, by file name, kept open for inspection."""
-    kept: dict[str, Any] = {}
-
-    def keep(plt: Any, fig: Any, out: Path) -> Path:
-        fig.savefig(out, dpi=plots.DPI, bbox_inches="tight")
-        kept[out.name] = fig
-        return out
-
-    monkeypatch.setattr(plots, "_save", keep)
-    yield kept
-    import matplotlib.pyplot as plt
-
-    for fig in kept.values():
-        plt.close(fig)
-
-
 def _inputs(paths: list[Path], **log_changes: Any) -> list[plots.PlotInput]:
     out = []
     for path in paths:
