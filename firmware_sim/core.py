@@ -436,7 +436,7 @@ class DriveCore:
         plant = self.plant
         try:
             counts = self.encoder.read(plant.position())
-        except (ValueError, OverflowError):
+        except ValueError:  # not finite, or beyond any count (Encoder.read)
             self.fault(FaultCode.ENCODER, 0, self.time_ns)
             state, counts = machine.state, 0
         t = self.time_ns

@@ -65,12 +65,10 @@ def test_a_finite_position_beyond_the_encoder_range_is_an_encoder_fault(
     buses: list[can.BusABC], fast_path: bool
 ) -> None:
     """A runaway position that is finite but whose counts overflow (position * counts_per_unit =
-    inf): the native drive's DriveCore.sample turns Encoder.read's OverflowError into an ENCODER
-    fault, and the CiA 402 drive does so for a non-finite position (EMCY 0x7305, FAULT, torque
-    cut). Here Cia402Core._sample catches only ValueError, and the fused SYNC (fast.py) calls
-    math.floor on the infinite product itself, so OverflowError escapes Cia402Lockstep.service on
-    both paths: the drive is left in OPERATION ENABLED with its torque applied instead of
-    faulted at zero current."""
+    inf) is an encoder fault on both paths, as a non-finite position is: EMCY 0x7305, FAULT,
+    torque cut. Before the fix Cia402Core._sample caught only ValueError and the fused SYNC called
+    math.floor on the infinite product itself, so OverflowError escaped Cia402Lockstep.service
+    and left the drive in OPERATION ENABLED with its torque applied."""
     host, drive = _enabled(buses, fast_path)
     drive.core.plant._x = [1.0e306, 0.0]
     host.send(_msg(RPDO, codec.encode_rpdo1(0x0F, 100)))

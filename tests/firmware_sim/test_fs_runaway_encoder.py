@@ -21,8 +21,8 @@ from dob_hil.loop.inproc_bus import InProcessBus
 from firmware_sim.lockstep import LockstepClock
 
 
-def _enabled_clock(fused: bool) -> tuple[LockstepClock, deque[Any], deque[Any], list[Any]]:
-    cfg = make_config()
+def _enabled_clock(fused: bool, **config: Any) -> tuple[LockstepClock, deque[Any], deque[Any], list[Any]]:
+    cfg = make_config(**config)
     truths: list[Any] = []
     to_drive: deque[Any] = deque()
     from_drive: deque[Any] = deque()
@@ -53,12 +53,10 @@ def _run(fused: bool, x: list[float]) -> tuple[Any, ...]:
 
 
 def test_encoder_overflow_of_a_finite_position_faults_like_the_general_path() -> None:
-    """A finite plant position whose counts overflow (position * counts_per_unit = inf):
-    Encoder.read raises OverflowError, which DriveCore.sample (general path) turns into an
-    ENCODER fault (FAULT frame, FEEDBACK with the fault status, zero current, disabled). The fused
-    _exchange checks only ``position - position != 0.0`` and then calls math.floor on the
-    infinite product itself, so OverflowError escapes service() with the period half done (no
-    fault, the drive still ENABLED, no FEEDBACK)."""
+    """A finite plant position whose counts overflow (position * counts_per_unit = inf) is an
+    ENCODER fault on both paths (FAULT frame, FEEDBACK with the fault status, zero current,
+    disabled). The fused _exchange once checked only the position for finiteness and let
+    math.floor's OverflowError escape service() with the period half done."""
     x = [1.0e306, 0.0]
     general = _run(False, x)
     fused = _run(True, x)
@@ -68,15 +66,9 @@ def test_encoder_overflow_of_a_finite_position_faults_like_the_general_path() ->
 
 def _runaway(fused: bool) -> tuple[Any, ...]:
     """An unstable plant held at a constant command until its position runs away."""
-    cfg = make_config(plant={"A": [[1.0e4, 1.0], [0.0, 0.0]]}, sim={"disturbance": []})
-    truths: list[Any] = []
-    to_drive: deque[Any] = deque()
-    from_drive: deque[Any] = deque()
-    clock = LockstepClock(InProcessBus("t", to_drive, from_drive), cfg, truths.append)
-    clock.fused = fused
-    enable = encode_control(ControlFrame(ControlRequest.ENABLE))
-    to_drive.append(can.Message(arbitration_id=clock.core.control_id, data=enable, is_extended_id=False))
-    clock.service()
+    clock, to_drive, from_drive, truths = _enabled_clock(
+        fused, plant={"A": [[1.0e4, 1.0], [0.0, 0.0]]}, sim={"disturbance": []}
+    )
     error = None
     for _ in range(600):
         seq = clock.core.last_seq
@@ -94,11 +86,11 @@ def _runaway(fused: bool) -> tuple[Any, ...]:
 
 
 def test_a_runaway_plant_faults_the_fused_drive_as_the_general_one() -> None:
-    """A runaway (an unstable plant under a constant command): on the general path the position
-    passes through the range where it is finite but its encoder counts overflow, Encoder.read
-    raises OverflowError and the drive takes an ENCODER fault (FAULT state, zero current, the
-    later commands refused). The fused path lets the OverflowError escape LockstepClock.service,
-    ending the session with the drive still ENABLED at its commanded current instead of faulted."""
+    """A runaway (an unstable plant under a constant command): the position passes through the
+    range where it is finite but its encoder counts overflow, and the drive takes an ENCODER fault
+    (FAULT state, zero current, the later commands refused) on the fused path as on the general
+    one. Before the fix the fused path let an OverflowError escape LockstepClock.service, ending
+    the session with the drive still ENABLED at its commanded current."""
     general = _runaway(False)
     fused = _runaway(True)
     assert general[0] is None and general[2] == 0.0
