@@ -9,7 +9,10 @@
    N minutes; records dropped (``LogWriter.stats``) and samples read back. Zero expected.
 3. Log size: bytes on disk per sample of the sample channel, all overhead included, two ways:
    a log holding samples only (``dob_hil.log.bench.measure_size``: file size / samples), and
-   a full log (sample + 2 frames + truth per period, ``write_synthetic``) with every byte
+   a full log (sample + 2 frames + truth per period, ``write_synthetic``), in both message layouts
+   (``full_period_zstd_B``: one message per record; ``full_period_blocks_zstd_B``: the block
+   layout, ``[run] log_layout = "blocks"``); the same written paced at 3.33 kHz for ``--paced-s``
+   (``paced_full_period_*_B``: real time closes chunks by age, 25 ms); and the per-record one with every byte
    apportioned: each chunk's bytes by the channels' share of its uncompressed message bytes,
    each channel's own message-index records, and the rest of the file (header, schemas,
    metadata, summary, footer) by the channels' share of all message bytes.
@@ -21,7 +24,8 @@
    record can reach: a lockstep ``paper-sine`` run of ``--size-samples`` samples; each channel's
    messages re-compressed alone (the writer's zstd level, 256 KiB chunks) per sample, plus the
    MessageIndex entries (16 B per message, which indexed readers need); and the same with the
-   CAN frames of a period bundled into one message (a layout this project does not write).
+   CAN frames of a period bundled into one message (a layout this project does not write); and
+   ``file_blocks_B``, the same run written in the block layout.
 5. ``--kill N``: the worst log lost at SIGKILL of the whole process group under load: N runs of a
    paced 3.33 kHz loop logging every period (sample, 2 frames, truth; real-time policy) beside
    two ``yes > /dev/null`` hogs, each killed after a random 0.9-6.9 s; loss = samples the loop
@@ -51,7 +55,7 @@ import zstandard
 from _common import parser, percentiles, report
 
 from dob_hil.log import LogWriter, read_log
-from dob_hil.log.bench import PAPER_LAYOUT, measure_size, write_synthetic
+from dob_hil.log.bench import PAPER_LAYOUT, SyntheticRun, measure_size, write_synthetic
 from dob_hil.log.chunked_file import ZSTD_LEVEL
 from dob_hil.log.mcap_scan import scan, walk_chunk
 from dob_hil.log.schemas import FLAG_DOB_ON, TOPIC_CAN, TOPIC_SAMPLE
@@ -240,9 +244,31 @@ def apportioned_bytes(path: Path, topic: str = TOPIC_SAMPLE) -> dict[str, float]
         }
 
 
-def log_size(tmp: Path, n: int) -> dict[str, Any]:
-    out: dict[str, Any] = {"samples": n}
+def paced_size(tmp: Path, n: int) -> dict[str, float]:
+    """Bytes per sample of a full log written at 3.33 kHz in real time (chunks closed by age,
+    25 ms: about 83 samples a chunk, so a block), in both message layouts; the records of
+    ``write_synthetic`` (SyntheticRun), so the figures compare with ``full_period_*``."""
+    out = {}
+    for message_layout in ("samples", "blocks"):
+        path = tmp / f"paced-{message_layout}.mcap"
+        run = SyntheticRun()
+        with LogWriter(path, PAPER_LAYOUT, backpressure=False, message_layout=message_layout) as log:
+            t0 = time.monotonic_ns()
+            for k in range(n):
+                ahead_ns = t0 + k * PERIOD_NS - time.monotonic_ns()
+                if ahead_ns > 0:
+                    time.sleep(ahead_ns * 1e-9)
+                run.period(log, k)
+                log.flush()
+        out[f"paced_full_period_{message_layout}_B"] = round(path.stat().st_size / n, 1)
+        path.unlink()
+    return out
+
+
+def log_size(tmp: Path, n: int, paced_n: int) -> dict[str, Any]:
+    out: dict[str, Any] = {"samples": n, "paced_samples": paced_n}
     out.update({k: round(v, 1) for k, v in measure_size(tmp, n).items()})
+    out.update(paced_size(tmp, paced_n))
     path = tmp / "full.mcap"
     write_synthetic(path, n)
     out["full_log_sample_channel"] = {k: round(v, 1) for k, v in apportioned_bytes(path).items()}
@@ -283,6 +309,11 @@ def size_floor(tmp: Path, n: int) -> dict[str, Any]:
             in_order.append((channel.topic, record + message.data))
     samples = len(by_topic.get(TOPIC_SAMPLE, []))
     out: dict[str, Any] = {"samples": samples, "file_B": round(path.stat().st_size / samples, 1)}
+    blocks_path = tmp / "floor-blocks.mcap"  # the same run in the block layout
+    run_session(config, RunOptions(duration_s=n * config.plant.period_ns * 1e-9, log_path=blocks_path,
+                                   log_layout="blocks"))  # fmt: skip
+    out["file_blocks_B"] = round(blocks_path.stat().st_size / samples, 1)
+    blocks_path.unlink()
     floor = 0.0
     for topic, records in sorted(by_topic.items()):
         alone = _compressed_B(records) / samples
@@ -314,6 +345,11 @@ def writer_cpu(tmp: Path, n: int) -> dict[str, Any]:
 
     from dob_hil.log.schemas import channel_specs
 
+    path = tmp / "cpu-blocks.mcap"  # the block layout: the writer also rewrites each chunk
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    write_synthetic(path, n, message_layout="blocks")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    blocks_cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     path = tmp / "cpu.mcap"
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -346,6 +382,7 @@ def writer_cpu(tmp: Path, n: int) -> dict[str, Any]:
         "samples": n,
         "messages_per_sample": round((len(data.samples) + len(data.frames) + len(data.truth)) / n, 2),
         "writer_cpu_us_per_sample": round(per_sample, 2),
+        "writer_cpu_us_per_sample_blocks_layout": round(blocks_cpu_s / n * 1e6, 2),
         "loop_wall_s": round(wall_s, 2),
         "mcap_add_message_us_per_message": round(lib_us_per_message, 2),
         "mcap_add_message_us_per_sample": round(4 * lib_us_per_message, 2),
@@ -443,7 +480,7 @@ def main() -> None:
             if args.only == "cpu":
                 result["writer_cpu"] = writer_cpu(tmp, size_n)
             elif args.only == "size":
-                result["size"] = log_size(tmp, size_n)
+                result["size"] = log_size(tmp, size_n, paced_n)
             elif args.only == "floor":
                 result["floor"] = size_floor(tmp, size_n)
             else:
@@ -454,7 +491,7 @@ def main() -> None:
         killed = kill_loss(tmp, args.kill) if args.kill else None
         paced = per_call(tmp, paced_n, paced=True)
         unpaced = per_call(tmp, unpaced_n, paced=False)
-        size = log_size(tmp, size_n)
+        size = log_size(tmp, size_n, paced_n)
         soaked = soak(tmp, minutes) if minutes is not None else None
     for name, calls in (("paced 3.33 kHz", paced), ("unpaced", unpaced)):
         result[name] = {k: v for k, v in calls.items() if not k.endswith("_us")}
@@ -471,8 +508,12 @@ def main() -> None:
     goals: dict[str, bool | None] = {
         "period_p99_le_5us_paced": paced["period_us"]["p99"] <= P99_GOAL_US,
         "sample_p99_le_5us_paced": paced["sample_us"]["p99"] <= P99_GOAL_US,
-        "size_le_150B_full_period": size["full_period_zstd_B"] <= SIZE_GOAL_B,
+        "size_le_150B_full_period_samples_layout": size["full_period_zstd_B"] <= SIZE_GOAL_B,
+        "size_le_150B_full_period_blocks_layout": size["full_period_blocks_zstd_B"] <= SIZE_GOAL_B,
+        "size_le_150B_paced_blocks_layout": size["paced_full_period_blocks_B"] <= SIZE_GOAL_B,
         "writer_cpu_le_8us_per_sample": cpu["writer_cpu_us_per_sample"] <= WRITER_GOAL_US,
+        "writer_cpu_le_8us_per_sample_blocks_layout": cpu["writer_cpu_us_per_sample_blocks_layout"]
+        <= WRITER_GOAL_US,
         "zero_dropped_in_soak": None if soaked is None else soaked["dropped_records"] == 0,
     }
     result["goals_met"] = goals

@@ -83,6 +83,13 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         )
         p.add_argument("--no-log", action="store_true", help="run without a log file (quick runs, campaigns)")
         p.add_argument(
+            "--log-layout",
+            choices=("samples", "blocks"),
+            default=None,
+            help="the log's messages: one per record (samples, Foxglove plots them against time) or "
+            "runs of records (blocks, about 40%% smaller); default: the config's run.log_layout",
+        )
+        p.add_argument(
             "--realtime",
             action="store_true",
             help="real-time loop even without a bus (embedded drive on its own clock)",

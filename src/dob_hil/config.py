@@ -214,6 +214,7 @@ class RunConfig:
     sched_fifo: bool = False
     cpu_affinity: tuple[int, ...] | None = None
     freeze_gc: bool = False
+    log_layout: str = "samples"  # "samples": one message per record; "blocks": runs of records
 
 
 @dataclass(frozen=True)

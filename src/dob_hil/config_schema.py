@@ -326,6 +326,11 @@ SCHEMA: tuple[SectionSpec, ...] = (
            "that each is one it may use on the machine it runs on.", low=0, high=4095),
         _f("freeze_gc", "boolean", "Real time: gc.freeze() and gc.disable() during the run.",
            default=False),
+        _f("log_layout", "string", "MCAP messages of the log (`--log-layout` overrides it): "
+           "`samples`, one message per sample, frame and truth record (Foxglove plots every field "
+           "against time); `blocks`, one message per run of records of a channel (about 40 % "
+           "smaller; Foxglove shows arrays). dob-hil reads both alike.", default="samples",
+           choices=("samples", "blocks")),
     )),
     SectionSpec("safety", "A safety envelope: crossing any bound stops the run safely (zero current, "
                 "drive disabled) with a non-zero exit naming the bound. A non-finite position always "

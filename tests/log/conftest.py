@@ -87,3 +87,9 @@ def small_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Recorder,
 def run_writer() -> Callable[..., tuple[Recorder, LogWriter]]:
     """The :func:`write_run` helper, as a fixture (test modules do not import conftest)."""
     return write_run
+
+
+@pytest.fixture(scope="session")
+def session_run_writer() -> Callable[..., tuple[Recorder, LogWriter]]:
+    """:func:`write_run` for module- and session-scoped fixtures."""
+    return write_run

@@ -132,6 +132,7 @@ def main(args: argparse.Namespace) -> int:
         dob_enabled=False if args.no_dob else None,
         duration_s=args.duration,
         log_path=Path(os.devnull) if args.no_log else (Path(args.log) if args.log else None),
+        log_layout=args.log_layout,
         realtime=args.realtime,
         rt=RtSettings(
             sched_fifo=args.sched_fifo, cpus=tuple(args.cpu) if args.cpu else None, freeze_gc=args.freeze_gc

@@ -142,10 +142,12 @@ def measure_size(tmp: Path, n: int = 200_000) -> dict[str, float]:
                 log.flush()
         out[f"samples_only_{compression}_B"] = path.stat().st_size / n
         path.unlink()
-    path = tmp / "size-full.mcap"
-    write_synthetic(path, n)
-    out["full_period_zstd_B"] = path.stat().st_size / n
-    path.unlink()
+    for message_layout in ("samples", "blocks"):
+        path = tmp / f"size-full-{message_layout}.mcap"
+        write_synthetic(path, n, message_layout=message_layout)
+        key = "full_period_zstd_B" if message_layout == "samples" else "full_period_blocks_zstd_B"
+        out[key] = path.stat().st_size / n
+        path.unlink()
     return out
 
 

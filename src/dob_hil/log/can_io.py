@@ -22,6 +22,7 @@ echoes (``keep_own_echoes=True`` keeps them).
 
 from __future__ import annotations
 
+import heapq
 import struct
 import time
 from collections.abc import Iterator
@@ -36,6 +37,8 @@ from dob_hil import __version__
 from dob_hil.errors import LogReadError
 from dob_hil.log.metadata import log_format_metadata
 from dob_hil.log.schemas import (
+    BLOCK_HEAD_BYTES,
+    BLOCK_SUFFIX,
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
     CAN_FLAG_BRS,
@@ -50,6 +53,7 @@ from dob_hil.log.schemas import (
     TOPIC_CAN,
     TOPIC_CAN_FD,
     LogLayout,
+    block_stride,
     can_fields,
     channel_specs,
     struct_body_format,
@@ -60,6 +64,20 @@ _LAYOUT = LogLayout(1, 1, 1, 1)  # the sample/truth channels of a capture stay e
 _CAN_BODY = struct.Struct("<" + struct_body_format(can_fields(CAN_DATA_BYTES)))
 _CAN_FD_BODY = struct.Struct("<" + struct_body_format(can_fields(CAN_FD_DATA_BYTES)))
 CHUNK_BYTES = 256 * 1024
+_U64 = struct.Struct("<Q")
+_STRIDES = {
+    TOPIC_CAN: block_stride(can_fields(CAN_DATA_BYTES)),
+    TOPIC_CAN_FD: block_stride(can_fields(CAN_FD_DATA_BYTES)),
+}
+
+
+def _block_records(topic: str, payload: bytes) -> range:
+    """Where each frame of a block message starts, after its CDR header (the block layout)."""
+    (count,) = struct.unpack_from("<I", payload, len(CDR_HEADER))
+    stride = _STRIDES[topic]
+    if len(payload) != len(CDR_HEADER) + BLOCK_HEAD_BYTES + count * stride:
+        raise ValueError(f"{topic}: a block of {count} frames in {len(payload)} bytes")
+    return range(BLOCK_HEAD_BYTES, BLOCK_HEAD_BYTES + count * stride, stride)
 
 
 def _flags(msg: can.Message) -> int:
@@ -147,10 +165,7 @@ class McapCanReader(BinaryIOMessageReader):
             start = summary.statistics.message_start_time if summary and summary.statistics else None
             offset_ns = wall_offset_ns(metadata, start)
             tx_ids = set() if self.keep_own_echoes else self._tx_ids(reader)
-            for _schema, channel, message in reader.iter_messages(
-                topics=[TOPIC_CAN, TOPIC_CAN_FD], log_time_order=True
-            ):
-                msg = self._decode(channel.topic, message.data, offset_ns)
+            for msg in self._in_log_time_order(reader, offset_ns):
                 if msg.is_rx and msg.arbitration_id in tx_ids:
                     continue  # a received copy of a frame we sent (udp_multicast's loopback)
                 yield msg
@@ -159,19 +174,47 @@ class McapCanReader(BinaryIOMessageReader):
         finally:
             self.stop()
 
+    def _in_log_time_order(self, reader: Any, offset_ns: int) -> Iterator[can.Message]:
+        """Every frame in log-time order. A block-layout log's block holds frames up to the next
+        block's start, so its frames wait in a heap until no later block can precede them; they
+        are ordered by their integer timestamp, then classic before FD (the block layout keeps no
+        order between the two channels' frames of equal timestamp), then file order."""
+        pending: list[tuple[int, int, int, can.Message]] = []
+        n = 0
+        for schema, channel, message in reader.iter_messages(
+            topics=[TOPIC_CAN, TOPIC_CAN_FD], log_time_order=True
+        ):
+            if not schema.name.endswith(BLOCK_SUFFIX):
+                yield self._decode(channel.topic, message.data, 0, offset_ns)
+                continue
+            while pending and pending[0][0] < message.log_time:
+                yield heapq.heappop(pending)[3]
+            fd = int(channel.topic == TOPIC_CAN_FD)
+            for at in _block_records(channel.topic, message.data):
+                (ts_ns,) = _U64.unpack_from(message.data, len(CDR_HEADER) + at)  # the record's log time
+                n += 1
+                heapq.heappush(
+                    pending, (ts_ns, fd, n, self._decode(channel.topic, message.data, at, offset_ns))
+                )
+        while pending:
+            yield heapq.heappop(pending)[3]
+
     def _tx_ids(self, reader: Any) -> set[int]:
         ids: set[int] = set()
-        for _schema, channel, message in reader.iter_messages(topics=[TOPIC_CAN, TOPIC_CAN_FD]):
+        for schema, channel, message in reader.iter_messages(topics=[TOPIC_CAN, TOPIC_CAN_FD]):
             body = _CAN_FD_BODY if channel.topic == TOPIC_CAN_FD else _CAN_BODY
-            _ts, aid, direction, *_rest = body.unpack_from(message.data, len(CDR_HEADER))
-            if direction == CAN_TX:
-                ids.add(aid)
+            block = schema.name.endswith(BLOCK_SUFFIX)
+            for at in _block_records(channel.topic, message.data) if block else (0,):
+                _ts, aid, direction, *_rest = body.unpack_from(message.data, len(CDR_HEADER) + at)
+                if direction == CAN_TX:
+                    ids.add(aid)
         return ids
 
     @staticmethod
-    def _decode(topic: str, payload: bytes, offset_ns: int) -> can.Message:
+    def _decode(topic: str, payload: bytes, at: int, offset_ns: int) -> can.Message:
+        """The frame whose body starts ``at`` bytes after the CDR header of ``payload``."""
         body = _CAN_FD_BODY if topic == TOPIC_CAN_FD else _CAN_BODY
-        ts_ns, aid, direction, dlc, flags, data = body.unpack_from(payload, len(CDR_HEADER))
+        ts_ns, aid, direction, dlc, flags, data = body.unpack_from(payload, len(CDR_HEADER) + at)
         remote = bool(flags & CAN_FLAG_REMOTE)
         length = 0 if remote else min(int(dlc), len(data))
         return can.Message(

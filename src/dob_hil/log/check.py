@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from dob_hil.errors import LogReadError
+from dob_hil.log.blocks import expand_runs
 from dob_hil.log.reader import _gather, _Reader
+from dob_hil.log.schemas import MESSAGE_RECORD_OVERHEAD
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,11 +62,20 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
         topics = {c.id: c.topic for c in reader.fmap.channels.values()}
         parts: dict[int, list[np.ndarray]] = {cid: [] for cid in topics}
         made = _records_made(reader.fmap.metadata.get("summary", {}))
+        blocks = reader.block_channels()
         for group in reader._groups():
             table = reader._table(group)
             seqs = _gather(group.buf, np.dtype("<u4"), table.offsets + 11)
             for cid in np.unique(table.channels).tolist():
-                parts.setdefault(int(cid), []).append(seqs[table.channels == cid])
+                mine = table.channels == cid
+                if cid in blocks:  # a block numbers its first record: the others follow it
+                    counts = _gather(
+                        group.buf, np.dtype("<u4"), table.offsets[mine] + MESSAGE_RECORD_OVERHEAD + 4
+                    ).astype(np.int64)
+                    numbers = expand_runs(seqs[mine].astype(np.int64), counts, 1)
+                    parts.setdefault(int(cid), []).append(numbers & 0xFFFFFFFF)
+                else:
+                    parts.setdefault(int(cid), []).append(seqs[mine])
             reader._release(group)
     finally:
         mm.close()

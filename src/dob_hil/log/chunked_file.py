@@ -43,7 +43,8 @@ from mcap.records import (
 )
 from mcap.writer import MCAP0_MAGIC
 
-from dob_hil.log.schemas import ChannelSpec
+from dob_hil.log.blocks import to_blocks
+from dob_hil.log.schemas import ChannelSpec, block_stride, body_size
 
 try:  # lz4 is optional
     import lz4.frame as _lz4_frame  # type: ignore[import-untyped,unused-ignore]
@@ -92,7 +93,14 @@ class ChunkedFile:
         self.chunk_indexes: list[ChunkIndex] = []
         self.attachment_indexes: list[AttachmentIndex] = []
         self.metadata_indexes: list[MetadataIndex] = []
-        self.message_counts: defaultdict[int, int] = defaultdict(int)
+        self.message_counts: defaultdict[int, int] = defaultdict(int)  # Message records
+        self.record_counts: defaultdict[int, int] = defaultdict(int)  # records (blocks hold many)
+        # the block layout: (record body size, stride) of each channel written as blocks
+        self.blocks = {
+            spec.key: (body_size(spec.fields), block_stride(spec.fields))
+            for spec in channels
+            if spec.block and spec.fields is not None
+        }
         self.message_start_time: int | None = None
         self.message_end_time = 0
         self.chunk = bytearray()
@@ -144,6 +152,11 @@ class ChunkedFile:
             return 0
         data = bytes(self.chunk)
         offsets = np.asarray(self.offsets, dtype=np.int64)
+        records = len(self.offsets)
+        block_counts: dict[int, int] = {}
+        if self.blocks:
+            data, block_offsets, block_counts = to_blocks(data, offsets, self.blocks)
+            offsets = np.asarray(block_offsets, dtype=np.int64)
         channels = _gather(data, "<u2", offsets + 9)
         log_times = _gather(data, "<u8", offsets + 15)
         start_time, end_time = int(log_times.min()), int(log_times.max())
@@ -181,6 +194,7 @@ class ChunkedFile:
         self._write(b"".join(parts))
         for channel_id, count in counts.items():
             self.message_counts[channel_id] += count
+            self.record_counts[channel_id] += block_counts.get(channel_id, count)
         self.chunk_indexes.append(
             ChunkIndex(
                 message_start_time=start_time,
@@ -197,10 +211,9 @@ class ChunkedFile:
         if self.message_start_time is None or start_time < self.message_start_time:
             self.message_start_time = start_time
         self.message_end_time = max(self.message_end_time, end_time)
-        count = len(self.offsets)
         self.chunk = bytearray()
         self.offsets = []
-        return count
+        return records
 
     # ------------------------------------------------------------------ other records
     def add_attachment(

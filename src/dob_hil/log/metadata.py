@@ -62,11 +62,13 @@ def run_metadata(
     return data
 
 
-def log_format_metadata(layout: LogLayout) -> dict[str, str]:
-    """The "log_format" record: enough to decode the data chunks even if the schemas were lost."""
+def log_format_metadata(layout: LogLayout, message_layout: str = "samples") -> dict[str, str]:
+    """The "log_format" record: enough to decode the data chunks even if the schemas were lost
+    (``message_layout``: one message per record, or blocks of records)."""
     return {
         "format": LOG_FORMAT_NAME,
         "version": LOG_FORMAT_VERSION,
         **layout.as_metadata(),
+        "message_layout": message_layout,
         "channels": json.dumps({str(spec.key): spec.topic for spec in channel_specs(layout)}),
     }

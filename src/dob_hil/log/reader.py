@@ -33,8 +33,11 @@ import zstandard
 
 from dob_hil.errors import LogReadError
 from dob_hil.log import mcap_scan
+from dob_hil.log.blocks import expand_runs
 from dob_hil.log.mcap_scan import ChunkRef, FileMap
 from dob_hil.log.schemas import (
+    BLOCK_HEAD_BYTES,
+    BLOCK_SUFFIX,
     CDR_HEADER_U32,
     MESSAGE_RECORD_OVERHEAD,
     TOPIC_CAN,
@@ -42,11 +45,14 @@ from dob_hil.log.schemas import (
     TOPIC_EVENT,
     TOPIC_SAMPLE,
     TOPIC_TRUTH,
+    Field,
     LogLayout,
     SchemaError,
+    block_stride,
     channel_specs,
     decode_event_cdr,
     msg_dtype,
+    parse_block_msg,
     parse_msg,
 )
 
@@ -79,6 +85,13 @@ _JSON_HEADER_DTYPE: Final = np.dtype(
 )  # fmt: skip
 
 StructArray = npt.NDArray[np.void]
+# the writer's summary: records written per fixed-size topic (exact counts of a block channel)
+_WRITTEN_KEYS: Final = {
+    TOPIC_SAMPLE: "samples_written",
+    TOPIC_CAN: "frames_written",
+    TOPIC_CAN_FD: "fd_frames_written",
+    TOPIC_TRUTH: "truth_written",
+}
 
 _READ_THREADS: Final = 2  # chunk decompression workers (zstd and crc32 release the GIL)
 _READ_AHEAD: Final = 32  # chunks in flight at most, to bound memory
@@ -111,7 +124,8 @@ class _Fixed:
     out: StructArray
     filled: int = 0
     record_dtype: np.dtype[np.void] | None = None  # the message layout, where dtype is a subset
-    counted: int = 0  # messages the chunks' indexes count
+    counted: int = 0  # messages the chunks' indexes count (records, for a block channel)
+    stride: int = 0  # a block channel: bytes per record in a block (0: one record per message)
 
     def reserve(self, extra: int) -> None:
         if self.filled + extra > len(self.out):
@@ -238,7 +252,14 @@ class _Reader:
         layout = self._layout()
         if log_time_window_ns is not None:  # after the channels: a summary-less log finds them in chunk 1
             first_ns, last_ns = log_time_window_ns
-            fmap.chunks = [c for c in fmap.chunks if c.end_time_ns >= first_ns and c.start_time_ns <= last_ns]
+            chunks = fmap.chunks
+            ends = [c.end_time_ns for c in chunks]
+            if self.block_channels():  # a chunk's last blocks reach up to the next chunk's first one
+                ends = [*(c.start_time_ns for c in chunks[1:]), 1 << 64][: len(chunks)]
+                ends = [max(e, c.end_time_ns) for e, c in zip(ends, chunks, strict=True)]
+            fmap.chunks = [
+                c for c, e in zip(chunks, ends, strict=True) if e >= first_ns and c.start_time_ns <= last_ns
+            ]
         fixed, event_channel = self._outputs(layout)
         events: list[dict[str, Any]] = []
         for group in self._groups():
@@ -289,7 +310,7 @@ class _Reader:
             if schema is None:
                 continue
             try:
-                fields[topic] = {f.name: f.n_values for f in parse_msg(schema.data.decode(errors="replace"))}
+                fields[topic] = {f.name: f.n_values for f in record_fields(schema)}
             except SchemaError as exc:
                 self.warnings.append(f"{topic}: schema {schema.name!r} unusable: {exc}")
         sample, truth = fields.get(TOPIC_SAMPLE), fields.get(TOPIC_TRUTH)
@@ -350,20 +371,24 @@ class _Reader:
             if schema is None or schema.encoding != "ros2msg" or channel.message_encoding != "cdr":
                 self.warnings.append(f"{channel.topic}: no ros2msg/cdr schema; channel skipped")
                 continue
+            block = schema.name.endswith(BLOCK_SUFFIX)
             try:
-                dtype = msg_dtype(parse_msg(schema.data.decode(errors="replace")))
+                fields = record_fields(schema)
+                dtype = msg_dtype(fields)
             except SchemaError as exc:
                 self.warnings.append(
                     f"{channel.topic}: schema {schema.name!r} unusable ({exc}); channel skipped"
                 )
                 continue
-            n = counts.get(channel.id, 0)
+            stride = block_stride(fields) if block else 0
+            n = self._block_records(channel.topic) if block else counts.get(channel.id, 0)
             size = n if preallocate else 0
             keep = self.fields.get(channel.topic)
             if keep is None:
                 fixed[channel.id] = _Fixed(
-                    channel.id, channel.topic, dtype, 4 + dtype.itemsize, np.zeros(size, dtype), counted=n
-                )
+                    channel.id, channel.topic, dtype, 4 + dtype.itemsize, np.zeros(size, dtype), counted=n,
+                    stride=stride,
+                )  # fmt: skip
                 continue
             assert dtype.fields is not None
             unknown = [name for name in keep if name not in dtype.fields]
@@ -374,9 +399,40 @@ class _Reader:
                 )
             subset = np.dtype([(name, dtype.fields[name][0]) for name in keep])
             fixed[channel.id] = _Fixed(
-                channel.id, channel.topic, subset, 4 + dtype.itemsize, np.zeros(size, subset), 0, dtype, n
-            )
+                channel.id, channel.topic, subset, 4 + dtype.itemsize, np.zeros(size, subset), 0, dtype, n,
+                stride,
+            )  # fmt: skip
         return fixed, event_channel
+
+    def block_channels(self) -> set[int]:
+        """Ids of the channels whose messages are blocks of records (the block layout)."""
+        return {
+            c.id
+            for c in self.fmap.channels.values()
+            if (s := self.fmap.schemas.get(c.schema_id)) is not None and s.name.endswith(BLOCK_SUFFIX)
+        }
+
+    def _block_records(self, topic: str) -> int:
+        """Records of a block channel: the writer's count for a log it closed (its summary), else
+        those of every readable block (each chunk decompressed once more: a damaged log only)."""
+        key = _WRITTEN_KEYS.get(topic)
+        written = self.fmap.metadata.get("summary", {}).get(key or "")
+        if self.fmap.complete and written is not None and written.isdigit():
+            return int(written)
+        channel_ids = [c.id for c in self.fmap.channels.values() if c.topic == topic]
+        total = 0
+        for chunk in self.fmap.chunks:
+            if not any(chunk.indexes.get(cid, (0, 0))[1] for cid in channel_ids):
+                continue
+            data = self._decompress(chunk, warn=False)
+            if data is None:
+                continue
+            walk = mcap_scan.walk_chunk(data)
+            for offset, cid in zip(walk.offsets, walk.channels, strict=True):
+                count_at = offset + MESSAGE_RECORD_OVERHEAD + 4  # after the CDR header
+                if cid in channel_ids and count_at + 4 <= len(data):
+                    total += int.from_bytes(data[count_at : count_at + 4], "little")
+        return total
 
     # ------------------------------------------------------------------ chunks
     def _decompress(
@@ -585,20 +641,17 @@ class _Reader:
         offsets = table.offsets[select]
         if len(offsets) == 0:
             return
-        good = table.lengths[select] == MESSAGE_RECORD_OVERHEAD - 9 + out.payload_length
-        good &= _gather(group.buf, np.dtype("<u4"), np.where(good, offsets + MESSAGE_RECORD_OVERHEAD, 0)) == (
-            CDR_HEADER_U32
-        )
-        if not good.all():
-            self.warnings.append(
-                f"{out.topic}: {int((~good).sum())} messages of the wrong length or encoding skipped"
-            )
-            offsets = offsets[good]
+        if out.stride:
+            offsets = self._block_rows(group, offsets, table.lengths[select], out)
+            if len(offsets) == 0:
+                return
+        else:
+            offsets = self._checked_messages(group, offsets, table.lengths[select], out)
         out.reserve(len(offsets))
         record = out.record_dtype or out.dtype
         void = np.dtype((np.void, record.itemsize))
         # Raw void items gather ~5x faster than structured ones (and np.take(out=) copies the view).
-        rows = _gather(group.buf, void, offsets + MESSAGE_RECORD_OVERHEAD + 4)
+        rows = _gather(group.buf, void, offsets)
         end = out.filled + len(offsets)
         if out.record_dtype is None:
             out.out.view(void)[out.filled : end] = rows
@@ -608,6 +661,39 @@ class _Reader:
             for name in out.dtype.names:
                 out.out[name][out.filled : end] = full[name]
         out.filled = end
+
+    def _block_rows(
+        self, group: _Group, offsets: npt.NDArray[np.int64], lengths: npt.NDArray[np.int64], out: _Fixed
+    ) -> npt.NDArray[np.int64]:
+        """Where each record of the channel's block messages starts (the block layout): a block
+        whose length does not match its count, or not CDR, is skipped with a warning."""
+        head = offsets + MESSAGE_RECORD_OVERHEAD
+        long_enough = lengths >= MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES
+        cdr = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head, 0))
+        counts = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head + 4, 0)).astype(np.int64)
+        good = long_enough & (cdr == CDR_HEADER_U32)
+        good &= lengths == MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES + counts * out.stride
+        if not good.all():
+            self.warnings.append(
+                f"{out.topic}: {int((~good).sum())} blocks of the wrong length or encoding skipped"
+            )
+            head, counts = head[good], counts[good]
+        return expand_runs(head + 4 + BLOCK_HEAD_BYTES, counts, out.stride)
+
+    def _checked_messages(
+        self, group: _Group, offsets: npt.NDArray[np.int64], lengths: npt.NDArray[np.int64], out: _Fixed
+    ) -> npt.NDArray[np.int64]:
+        """Where the body of each of the channel's messages starts (one record per message)."""
+        good = lengths == MESSAGE_RECORD_OVERHEAD - 9 + out.payload_length
+        good &= _gather(group.buf, np.dtype("<u4"), np.where(good, offsets + MESSAGE_RECORD_OVERHEAD, 0)) == (
+            CDR_HEADER_U32
+        )
+        if not good.all():
+            self.warnings.append(
+                f"{out.topic}: {int((~good).sum())} messages of the wrong length or encoding skipped"
+            )
+            offsets = offsets[good]
+        return offsets + MESSAGE_RECORD_OVERHEAD + 4
 
     def _gather_events(
         self, group: _Group, table: _Table, channel_id: int, events: list[dict[str, Any]]
@@ -625,6 +711,13 @@ class _Reader:
                 continue
             if isinstance(event, dict):
                 events.append(event)
+
+
+def record_fields(schema: mcap_scan.SchemaRecord) -> tuple[Field, ...]:
+    """The fields of one record of a channel's schema: the message's own, or for a block schema
+    (its name ends in ``Block``) those of the records it holds. SchemaError if unusable."""
+    text = schema.data.decode(errors="replace")
+    return parse_block_msg(text) if schema.name.endswith(BLOCK_SUFFIX) else parse_msg(text)
 
 
 def chunk_claim_limit(compressed_bytes: int) -> int:

@@ -348,7 +348,10 @@ def decode_event_cdr(payload: bytes | bytearray | memoryview) -> dict[str, objec
 
 @dataclass(frozen=True, slots=True)
 class ChannelSpec:
-    """One channel of the log: its topic, schema and encodings. ``fields`` is None for JSON."""
+    """One channel of the log: its topic, schema and encodings. ``fields`` is None for JSON.
+
+    ``block``: the channel's messages are blocks (``[log] layout = "blocks"``): each holds a run
+    of consecutive records of ``fields`` as one sequence (:func:`block_msg_text`)."""
 
     key: int  # channel number on the writer pipe, and the MCAP channel id the writer assigns
     topic: str
@@ -356,9 +359,61 @@ class ChannelSpec:
     schema_encoding: str
     message_encoding: str
     fields: tuple[Field, ...] | None  # None: the variable-length event message
+    block: bool = False
 
     def schema_data(self) -> bytes:
-        return EVENT_MSG_TEXT.encode() if self.fields is None else msg_text(self.fields).encode()
+        if self.fields is None:
+            return EVENT_MSG_TEXT.encode()
+        if self.block:
+            return block_msg_text(self.schema_name.removesuffix(BLOCK_SUFFIX), self.fields).encode()
+        return msg_text(self.fields).encode()
+
+
+# ------------------------------------------------------------------ the block layout
+# A block message holds a run of consecutive records of one channel as a ros2msg sequence of the
+# per-record message: CDR ``uint32 count``, 4 bytes of padding (the records start with a uint64),
+# then the records, each padded to a multiple of 8 bytes (CDR aligns each record's first uint64).
+# The Message record's sequence number is its first record's, its log time its first record's
+# and its publish time its last record's; a record's own log time is its first field.
+BLOCK_SUFFIX: Final = "Block"
+BLOCK_FIELD: Final = "records"
+BLOCK_SEPARATOR: Final = "=" * 80
+BLOCK_HEAD_BYTES: Final = 8  # count u32 + padding, after the CDR encapsulation header
+
+
+def block_stride(fields: tuple[Field, ...]) -> int:
+    """Bytes per record inside a block: the record's body padded to a multiple of 8."""
+    return (body_size(fields) + 7) // 8 * 8
+
+
+def block_msg_text(record_schema_name: str, fields: tuple[Field, ...]) -> str:
+    """The ros2msg text of a block of ``record_schema_name`` records (``dob_hil/msg/Sample``),
+    with the record's definition as a dependency, as rosbag2 writes nested types."""
+    package, _, name = record_schema_name.partition("/msg/")
+    return (
+        f"# consecutive {name} records of this channel, in order (a block-layout log)\n"
+        f"{package}/{name}[] {BLOCK_FIELD}\n{BLOCK_SEPARATOR}\nMSG: {package}/{name}\n{msg_text(fields)}"
+    )
+
+
+_BLOCK_FIELD_LINE: Final = re.compile(r"(?P<type>[A-Za-z_][A-Za-z0-9_]*/[A-Za-z_][A-Za-z0-9_]*)\[\]\s+\S+")
+
+
+def parse_block_msg(text: str) -> tuple[Field, ...]:
+    """The record fields of a block schema text (:func:`block_msg_text`); SchemaError if it is not one."""
+    head, sep, rest = text.partition(BLOCK_SEPARATOR)
+    if not sep:
+        raise SchemaError("block schema without the record's definition")
+    lines = [line.split("#", 1)[0].strip() for line in head.splitlines()]
+    lines = [line for line in lines if line]
+    match = _BLOCK_FIELD_LINE.fullmatch(lines[0]) if len(lines) == 1 else None
+    if match is None:
+        raise SchemaError("block schema: expected one sequence field of the record type")
+    body = rest.lstrip("\n")
+    first, _, definition = body.partition("\n")
+    if first.strip() != f"MSG: {match['type']}":
+        raise SchemaError(f"block schema: no definition of {match['type']!r}")
+    return parse_msg(definition)
 
 
 CH_SAMPLE: Final = 1
@@ -368,13 +423,29 @@ CH_TRUTH: Final = 4
 CH_EVENT: Final = 5
 
 
-def channel_specs(layout: LogLayout) -> tuple[ChannelSpec, ...]:
-    """The log's channels, in registration order (so the MCAP channel ids are 1..5)."""
+MESSAGE_LAYOUTS: Final = ("samples", "blocks")  # [log] layout: one message per record, or blocks
+
+
+def channel_specs(layout: LogLayout, message_layout: str = "samples") -> tuple[ChannelSpec, ...]:
+    """The log's channels, in registration order (so the MCAP channel ids are 1..5).
+
+    ``message_layout`` "blocks": the fixed-size channels carry blocks of records (their schema
+    names end in ``Block``); events stay one message each."""
+    if message_layout not in MESSAGE_LAYOUTS:
+        raise SchemaError(f"log layout: expected one of {', '.join(MESSAGE_LAYOUTS)}, got {message_layout!r}")
+    b = message_layout == "blocks"
+    s = BLOCK_SUFFIX if b else ""
+    fixed = (
+        (CH_SAMPLE, TOPIC_SAMPLE, SCHEMA_SAMPLE, sample_fields(layout)),
+        (CH_CAN, TOPIC_CAN, SCHEMA_CAN, can_fields(CAN_DATA_BYTES)),
+        (CH_CAN_FD, TOPIC_CAN_FD, SCHEMA_CAN_FD, can_fields(CAN_FD_DATA_BYTES)),
+        (CH_TRUTH, TOPIC_TRUTH, SCHEMA_TRUTH, truth_fields(layout)),
+    )
     return (
-        ChannelSpec(CH_SAMPLE, TOPIC_SAMPLE, SCHEMA_SAMPLE, "ros2msg", "cdr", sample_fields(layout)),
-        ChannelSpec(CH_CAN, TOPIC_CAN, SCHEMA_CAN, "ros2msg", "cdr", can_fields(CAN_DATA_BYTES)),
-        ChannelSpec(CH_CAN_FD, TOPIC_CAN_FD, SCHEMA_CAN_FD, "ros2msg", "cdr", can_fields(CAN_FD_DATA_BYTES)),
-        ChannelSpec(CH_TRUTH, TOPIC_TRUTH, SCHEMA_TRUTH, "ros2msg", "cdr", truth_fields(layout)),
+        *(
+            ChannelSpec(key, topic, name + s, "ros2msg", "cdr", fields, b)
+            for key, topic, name, fields in fixed
+        ),
         ChannelSpec(CH_EVENT, TOPIC_EVENT, SCHEMA_EVENT, "ros2msg", "cdr", None),
     )
 

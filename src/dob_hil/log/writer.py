@@ -69,6 +69,7 @@ from dob_hil.log.schemas import (
     CH_TRUTH,
     EVENT_LEVELS,
     MESSAGE_HEADER,
+    MESSAGE_LAYOUTS,
     OP_MESSAGE,
     TOPIC_CAN,
     TOPIC_CAN_FD,
@@ -85,6 +86,9 @@ from dob_hil.log.schemas import (
 )
 
 DEFAULT_CHUNK_SIZE_BYTES: Final = 256 * 1024
+# the block layout's chunks (counted in per-record bytes, before they become blocks): a block is at
+# most a chunk's run of records, and longer runs compress better (BENCHMARKS.md, "Log size")
+DEFAULT_BLOCK_CHUNK_SIZE_BYTES: Final = 1024 * 1024
 DEFAULT_CHUNK_INTERVAL_NS: Final = 25_000_000
 DEFAULT_MAX_BACKLOG_BYTES: Final = 64 * 1024 * 1024
 # The control thread hands batches over in flush() (after the command is sent): about one sample
@@ -140,9 +144,10 @@ class LogWriter:
         *,
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         attachments: Mapping[str, bytes] | None = None,
-        chunk_size_bytes: int = DEFAULT_CHUNK_SIZE_BYTES,
+        chunk_size_bytes: int | None = None,
         chunk_interval_ns: int = DEFAULT_CHUNK_INTERVAL_NS,
         compression: str = "zstd",
+        message_layout: str = "samples",
         max_backlog_bytes: int = DEFAULT_MAX_BACKLOG_BYTES,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
         flush_bytes: int = DEFAULT_FLUSH_BYTES,
@@ -155,6 +160,14 @@ class LogWriter:
         self.layout = layout
         if compression not in ("zstd", "lz4", "none"):
             raise LogWriteError(f"log compression: expected 'zstd', 'lz4' or 'none', got {compression!r}")
+        if message_layout not in MESSAGE_LAYOUTS:
+            raise LogWriteError(
+                f"log layout: expected one of {', '.join(MESSAGE_LAYOUTS)}, got {message_layout!r}"
+            )
+        self.message_layout = message_layout
+        if chunk_size_bytes is None:
+            blocks = message_layout == "blocks"
+            chunk_size_bytes = DEFAULT_BLOCK_CHUNK_SIZE_BYTES if blocks else DEFAULT_CHUNK_SIZE_BYTES
         if chunk_size_bytes < 1024:
             raise LogWriteError(f"log chunk_size_bytes: expected >= 1024, got {chunk_size_bytes}")
         self.null = str(self.path) == os.devnull
@@ -275,6 +288,7 @@ class LogWriter:
                     "chunk_size_bytes": chunk_size_bytes,
                     "chunk_interval_ns": chunk_interval_ns,
                     "compression": compression,
+                    "message_layout": self.message_layout,
                     "library": f"dob_hil/{dob_hil.__version__}",
                 },
             )
@@ -283,7 +297,9 @@ class LogWriter:
             media_type = _MEDIA_TYPES.get(Path(name).suffix, "application/octet-stream")
             fields = {"name": name, "media_type": media_type, "create_time": now_ns, "log_time": now_ns}
             records.append(pipe.control_record(pipe.OP_ATTACHMENT, fields, bytes(blob)))
-        all_metadata: dict[str, Mapping[str, str]] = {"log_format": log_format_metadata(self.layout)}
+        all_metadata: dict[str, Mapping[str, str]] = {
+            "log_format": log_format_metadata(self.layout, self.message_layout)
+        }
         if "versions" not in metadata:
             all_metadata["versions"] = versions_metadata()
         all_metadata.update(metadata)

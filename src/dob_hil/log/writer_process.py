@@ -56,8 +56,12 @@ class LogFile:
         layout = LogLayout(**config["layout"])
         self.chunk_size_bytes = int(config["chunk_size_bytes"])
         self.chunk_interval_ns = int(config["chunk_interval_ns"])
+        message_layout = str(config.get("message_layout", "samples"))
         self.file = ChunkedFile(
-            self.path, str(config["library"]), channel_specs(layout), str(config["compression"])
+            self.path,
+            str(config["library"]),
+            channel_specs(layout, message_layout),
+            str(config["compression"]),
         )
         self.chunk_opened_ns = 0
         self.chunks = 0
@@ -85,7 +89,7 @@ class LogFile:
 
     def written(self) -> dict[str, int]:
         """Records per kind in finished chunks (those that reached the file)."""
-        counts = {key: int(self.file.message_counts.get(ch, 0)) for ch, key in _WRITTEN_KEYS.items()}
+        counts = {key: int(self.file.record_counts.get(ch, 0)) for ch, key in _WRITTEN_KEYS.items()}
         counts["chunks"] = self.chunks
         return counts
 

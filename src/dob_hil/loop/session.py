@@ -66,6 +66,7 @@ class RunOptions:
     bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None
     # the embedded lockstep bus: "inprocess" (no copies) or python-can's "virtual"
     bus_impl: str = "inprocess"
+    log_layout: str | None = None  # None: the config's run.log_layout ("samples" or "blocks")
     # the simulated drive's plant ("truth"), when it differs from the design's (campaigns)
     sim_config: Config | None = None
     live: Any = None  # dob_hil.live.process.LiveOptions: serve the run to Foxglove (--live)
@@ -265,6 +266,7 @@ def run_session(config: Config, options: RunOptions) -> RunSummary:
             metadata={"run": run_meta, "versions": versions_metadata()},
             attachments={"design.json": design_json.encode(), "config.toml": config.text.encode()},
             backpressure=mode == "lockstep",  # real time drops (counted) rather than wait
+            message_layout=options.log_layout or config.run.log_layout,
         ) as log,
     ):
         summary = _run_with_log(config, profile, options, design, step, reference, log, log_path, mode,

@@ -1,0 +1,104 @@
+"""The block layout: a chunk's per-record Message records rewritten as one message per run.
+
+The control thread packs every record as its own MCAP Message record (:mod:`dob_hil.log.pipe`);
+with ``[log] layout = "blocks"`` the writer process rewrites each chunk before compressing it
+(:func:`to_blocks`): the records of each fixed-size channel become block messages, each a run of
+consecutive records (sequence numbers one apart, log times non-decreasing) as a ros2msg sequence
+(:func:`dob_hil.log.schemas.block_msg_text`). Events stay one message each. A block's sequence
+number and log time are its first record's and its publish time its last record's, so a gap in a
+channel's records still shows as a gap between its blocks (:mod:`dob_hil.log.check`).
+
+Why: a Message record costs 31 bytes of header and 16 bytes of (uncompressed) message index, so at
+four records per sample they were 64 of the 223 bytes a lockstep sample took; a block pays them
+once per run (BENCHMARKS.md, "Log size").
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+from dob_hil.log.schemas import BLOCK_HEAD_BYTES, CDR_HEADER, MESSAGE_RECORD_OVERHEAD, OP_MESSAGE
+
+_U32_MASK: Final = 0xFFFFFFFF
+_BLOCK_HEAD = struct.Struct("<BQHIQQ4sII")  # Message header, CDR header, count, padding
+_RECORD_BODY: Final = MESSAGE_RECORD_OVERHEAD + 4  # a record's body starts after its CDR header
+
+
+def _gather(buf: npt.NDArray[np.uint8], dtype: str, offsets: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    item = np.dtype(dtype)
+    view = np.ndarray((len(buf) - item.itemsize + 1,), item, buf, 0, (1,))
+    return view[offsets].astype(np.int64)
+
+
+def expand_runs(
+    firsts: npt.NDArray[np.int64], counts: npt.NDArray[np.int64], step: int
+) -> npt.NDArray[np.int64]:
+    """``firsts[i] + j * step`` for ``j < counts[i]``, run after run (a block's records from its first)."""
+    before = np.cumsum(counts) - counts  # records in the runs before each
+    index_in_run = np.arange(int(counts.sum()), dtype=np.int64) - np.repeat(before, counts)
+    return np.repeat(firsts, counts) + index_in_run * step
+
+
+def block_record_length(count: int, stride: int) -> int:
+    """The Message record length field of a block of ``count`` records of ``stride`` bytes."""
+    return MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES + count * stride
+
+
+def to_blocks(
+    data: bytes, offsets: npt.NDArray[np.int64], bodies: dict[int, tuple[int, int]]
+) -> tuple[bytes, list[int], dict[int, int]]:
+    """Rewrite the Message records of a chunk (``data``, records at ``offsets``) as blocks.
+
+    ``bodies`` maps each block channel id to (record body size, stride). Returns the new chunk
+    data, its record offsets, and the records per block channel. Records of other channels are
+    kept as they are; every record lands in the output (none is dropped), each block where its
+    first record was. A record of a block channel whose length is not that channel's raises
+    ValueError (the writer made it: a defect, not damage).
+    """
+    buf = np.frombuffer(data, dtype=np.uint8)
+    channels = _gather(buf, "<u2", offsets + 9)
+    lengths = _gather(buf, "<u8", offsets + 1)
+    pieces: list[tuple[int, bytes]] = []  # (position of the first record, record bytes)
+    counts: dict[int, int] = {}
+    in_block = np.zeros(len(offsets), dtype=bool)
+    for channel_id, (body, stride) in bodies.items():
+        where = np.flatnonzero(channels == channel_id)
+        if len(where) == 0:
+            continue
+        expected = MESSAGE_RECORD_OVERHEAD - 9 + 4 + body
+        if np.any(lengths[where] != expected):
+            raise ValueError(f"channel {channel_id}: a record of another length than {expected}")
+        in_block[where] = True
+        starts = offsets[where]
+        seqs = _gather(buf, "<u4", starts + 11)
+        times = _gather(buf, "<u8", starts + 15)
+        breaks = np.flatnonzero((seqs[1:] != ((seqs[:-1] + 1) & _U32_MASK)) | (times[1:] < times[:-1])) + 1
+        rows = np.zeros((len(where), stride), dtype=np.uint8)
+        rows[:, :body] = buf[(starts + _RECORD_BODY)[:, None] + np.arange(body)]
+        bounds = [0, *breaks.tolist(), len(where)]
+        for a, b in itertools.pairwise(bounds):
+            n = b - a
+            head = _BLOCK_HEAD.pack(
+                OP_MESSAGE, block_record_length(n, stride), channel_id, int(seqs[a]),
+                int(times[a]), int(times[b - 1]), CDR_HEADER, n, 0,
+            )  # fmt: skip
+            pieces.append((int(where[a]), head + rows[a:b].tobytes()))
+        counts[channel_id] = len(where)
+    for i in np.flatnonzero(~in_block).tolist():
+        start = int(offsets[i])
+        pieces.append((i, data[start : start + 9 + int(lengths[i])]))
+    pieces.sort(key=lambda p: p[0])
+    out_offsets: list[int] = []
+    pos = 0
+    for _, piece in pieces:
+        out_offsets.append(pos)
+        pos += len(piece)
+    return b"".join(p for _, p in pieces), out_offsets, counts
+
+
+__all__ = ["block_record_length", "expand_runs", "to_blocks"]
