@@ -9,6 +9,9 @@ without wall-clock fields). Run it before and after a change and compare the out
     .venv/bin/python tools/log_digest.py > before.txt   # on the old code
     .venv/bin/python tools/log_digest.py > after.txt    # on the new code
     diff before.txt after.txt
+
+``--log-layout blocks`` writes the logs in the block layout: the digests are those of the default
+layout (the same records, read back alike).
 """
 
 from __future__ import annotations
@@ -41,6 +44,14 @@ def cases(name: str) -> Iterator[tuple[str, Config]]:
 
 
 def main(argv: list[str]) -> int:
+    layout = "samples"
+    if "--log-layout" in argv:
+        i = argv.index("--log-layout")
+        layout = argv[i + 1] if i + 1 < len(argv) else ""
+        argv = argv[:i] + argv[i + 2 :]
+        if layout not in ("samples", "blocks"):
+            print(f"log_digest: --log-layout: expected samples or blocks, got {layout!r}", file=sys.stderr)
+            return 2
     only = set(argv)
     with tempfile.TemporaryDirectory(prefix="log-digest-") as tmp:
         for scenario in SCENARIOS:
@@ -48,7 +59,7 @@ def main(argv: list[str]) -> int:
                 continue
             for label, config in cases(scenario):
                 path = Path(tmp) / f"{label}.mcap"
-                run_session(config, RunOptions(duration_s=DURATION_S, log_path=path))
+                run_session(config, RunOptions(duration_s=DURATION_S, log_path=path, log_layout=layout))
                 print(f"{label:32s} {log_digest(path)}", flush=True)
     return 0
 

@@ -252,3 +252,30 @@ def test_a_bad_log_layout_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixt
     with pytest.raises(SystemExit) as exc:
         cli.main(["run", "paper-step", "--log-layout", "rows"])
     assert exc.value.code == 2
+
+
+def test_a_huge_count_in_a_cut_log_is_a_warning_not_an_allocation(tmp_path: Path, run_writer: Any) -> None:
+    """A block claiming 2**32 - 1 records in a log without its summary: the counting pass and the
+    readers take it for damage (its length does not fit), and nothing near 2**32 is allocated."""
+    path = tmp_path / "huge.mcap"
+    run_writer(path, 300, message_layout="blocks", compression="none")
+    blob = bytearray(path.read_bytes())
+    whole = read_log(path)
+    at = 0
+    while True:
+        at = blob.find(bytes([OP_MESSAGE]), at + 1)
+        assert at > 0
+        _op, _length, channel, seq, _t, _p = MESSAGE_HEADER.unpack_from(blob, at)
+        if channel == 1 and seq == 0 and blob[at + 31 : at + 35] == CDR_HEADER:
+            break
+    struct.pack_into("<I", blob, at + 35, 0xFFFFFFFF)
+    cut = tmp_path / "huge-cut.mcap"
+    cut.write_bytes(bytes(blob[: blob.rfind(b"\x0f")]))  # no DataEnd, no summary: counted block by block
+    data = read_log(cut, verify_crc=False)
+    assert len(data.samples) == 0 and not data.complete
+    assert any("blocks of the wrong length" in w for w in data.warnings)
+    assert data.truth.tobytes() == whole.truth[: len(data.truth)].tobytes()
+    with open_stream(cut, {TOPIC_SAMPLE: ("seq",)}, events=False) as stream:
+        assert stream.counts[TOPIC_SAMPLE] == 0  # the chunk's CRC fails here: nothing counted
+    report = check_sequences(cut)
+    assert report[TOPIC_SAMPLE].messages == 0

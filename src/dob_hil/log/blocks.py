@@ -44,9 +44,13 @@ def expand_runs(
     return np.repeat(firsts, counts) + index_in_run * step
 
 
+# a block's Message record length field: this, plus its records' bytes
+BLOCK_LENGTH_BASE: Final = MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES
+
+
 def block_record_length(count: int, stride: int) -> int:
     """The Message record length field of a block of ``count`` records of ``stride`` bytes."""
-    return MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES + count * stride
+    return BLOCK_LENGTH_BASE + count * stride
 
 
 def to_blocks(
@@ -101,4 +105,4 @@ def to_blocks(
     return b"".join(p for _, p in pieces), out_offsets, counts
 
 
-__all__ = ["block_record_length", "expand_runs", "to_blocks"]
+__all__ = ["BLOCK_LENGTH_BASE", "block_record_length", "expand_runs", "to_blocks"]

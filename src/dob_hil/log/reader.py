@@ -33,7 +33,7 @@ import zstandard
 
 from dob_hil.errors import LogReadError
 from dob_hil.log import mcap_scan
-from dob_hil.log.blocks import expand_runs
+from dob_hil.log.blocks import BLOCK_LENGTH_BASE, block_record_length, expand_runs
 from dob_hil.log.mcap_scan import ChunkRef, FileMap
 from dob_hil.log.schemas import (
     BLOCK_HEAD_BYTES,
@@ -381,7 +381,7 @@ class _Reader:
                 )
                 continue
             stride = block_stride(fields) if block else 0
-            n = self._block_records(channel.topic) if block else counts.get(channel.id, 0)
+            n = self._block_records(channel.topic, stride) if block else counts.get(channel.id, 0)
             size = n if preallocate else 0
             keep = self.fields.get(channel.topic)
             if keep is None:
@@ -404,21 +404,25 @@ class _Reader:
             )  # fmt: skip
         return fixed, event_channel
 
-    def block_channels(self) -> set[int]:
-        """Ids of the channels whose messages are blocks of records (the block layout)."""
-        return {
-            c.id
-            for c in self.fmap.channels.values()
-            if (s := self.fmap.schemas.get(c.schema_id)) is not None and s.name.endswith(BLOCK_SUFFIX)
-        }
+    def block_channels(self) -> dict[int, int]:
+        """The channels whose messages are blocks of records (the block layout): id -> record stride."""
+        strides = {}
+        for c in self.fmap.channels.values():
+            schema = self.fmap.schemas.get(c.schema_id)
+            if schema is not None and schema.name.endswith(BLOCK_SUFFIX):
+                with contextlib.suppress(SchemaError):  # an unusable schema: its channel is skipped
+                    strides[c.id] = block_stride(record_fields(schema))
+        return strides
 
-    def _block_records(self, topic: str) -> int:
+    def _block_records(self, topic: str, stride: int) -> int:
         """Records of a block channel: the writer's count for a log it closed (its summary), else
-        those of every readable block (each chunk decompressed once more: a damaged log only)."""
+        those of every readable block whose length fits its count (each chunk decompressed once
+        more: a damaged log only). Never more than the chunks can hold (a crafted summary)."""
+        most = sum(c.uncompressed_size for c in self.fmap.chunks) // stride
         key = _WRITTEN_KEYS.get(topic)
         written = self.fmap.metadata.get("summary", {}).get(key or "")
         if self.fmap.complete and written is not None and written.isdigit():
-            return int(written)
+            return min(int(written), most)
         channel_ids = [c.id for c in self.fmap.channels.values() if c.topic == topic]
         total = 0
         for chunk in self.fmap.chunks:
@@ -428,11 +432,14 @@ class _Reader:
             if data is None:
                 continue
             walk = mcap_scan.walk_chunk(data)
-            for offset, cid in zip(walk.offsets, walk.channels, strict=True):
+            for offset, cid, length in zip(walk.offsets, walk.channels, walk.lengths, strict=True):
                 count_at = offset + MESSAGE_RECORD_OVERHEAD + 4  # after the CDR header
-                if cid in channel_ids and count_at + 4 <= len(data):
-                    total += int.from_bytes(data[count_at : count_at + 4], "little")
-        return total
+                if cid not in channel_ids or count_at + 4 > len(data):
+                    continue
+                count = int.from_bytes(data[count_at : count_at + 4], "little")
+                if length == block_record_length(count, stride):
+                    total += count
+        return min(total, most)
 
     # ------------------------------------------------------------------ chunks
     def _decompress(
@@ -668,11 +675,11 @@ class _Reader:
         """Where each record of the channel's block messages starts (the block layout): a block
         whose length does not match its count, or not CDR, is skipped with a warning."""
         head = offsets + MESSAGE_RECORD_OVERHEAD
-        long_enough = lengths >= MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES
+        long_enough = lengths >= BLOCK_LENGTH_BASE
         cdr = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head, 0))
         counts = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head + 4, 0)).astype(np.int64)
         good = long_enough & (cdr == CDR_HEADER_U32)
-        good &= lengths == MESSAGE_RECORD_OVERHEAD - 9 + 4 + BLOCK_HEAD_BYTES + counts * out.stride
+        good &= lengths == BLOCK_LENGTH_BASE + counts * out.stride
         if not good.all():
             self.warnings.append(
                 f"{out.topic}: {int((~good).sum())} blocks of the wrong length or encoding skipped"
