@@ -16,7 +16,8 @@ import pytest
 
 from dob_hil import cli
 from dob_hil.errors import LogReadError
-from dob_hil.log import LogData, read_log
+from dob_hil.log import LogData, LogWriter, read_log
+from dob_hil.log.bench import PAPER_LAYOUT
 from dob_hil.log.blocks import to_blocks
 from dob_hil.log.check import check_sequences
 from dob_hil.log.mcap_scan import scan, walk_chunk
@@ -66,7 +67,7 @@ def test_a_block_log_reads_back_as_the_per_sample_log(both: dict[str, tuple[Path
     # one sample message per chunk (a run of records), not one per sample
     fmap = scan(path.read_bytes(), str(path))
     messages = sum(chunk.indexes.get(1, (0, 0))[1] for chunk in fmap.chunks)
-    assert messages == sum(1 for chunk in fmap.chunks if 1 in chunk.indexes) < N / 20
+    assert messages == sum(1 for chunk in fmap.chunks if 1 in chunk.indexes) < N / 10
 
 
 def test_streamed_reads_and_counts_agree(both: dict[str, tuple[Path, LogData]]) -> None:
@@ -160,7 +161,7 @@ def test_flipped_bytes_give_rows_of_the_log_or_a_warning(
 
 def test_a_block_whose_count_lies_is_skipped_with_a_warning(tmp_path: Path, run_writer: Any) -> None:
     path = tmp_path / "lie.mcap"
-    run_writer(path, 200, message_layout="blocks", compression="none")
+    run_writer(path, 200, message_layout="blocks", compression="none", chunk_interval_ns=10**12)
     blob = bytearray(path.read_bytes())
     whole = read_log(path)
     # the first sample block: its CDR header is followed by the count (uncompressed chunks)
@@ -258,7 +259,7 @@ def test_a_huge_count_in_a_cut_log_is_a_warning_not_an_allocation(tmp_path: Path
     """A block claiming 2**32 - 1 records in a log without its summary: the counting pass and the
     readers take it for damage (its length does not fit), and nothing near 2**32 is allocated."""
     path = tmp_path / "huge.mcap"
-    run_writer(path, 300, message_layout="blocks", compression="none")
+    run_writer(path, 300, message_layout="blocks", compression="none", chunk_interval_ns=10**12)
     blob = bytearray(path.read_bytes())
     whole = read_log(path)
     at = 0
@@ -279,3 +280,93 @@ def test_a_huge_count_in_a_cut_log_is_a_warning_not_an_allocation(tmp_path: Path
         assert stream.counts[TOPIC_SAMPLE] == 0  # the chunk's CRC fails here: nothing counted
     report = check_sequences(cut)
     assert report[TOPIC_SAMPLE].messages == 0
+
+
+@pytest.mark.parametrize("layout", ["samples", "blocks"])
+def test_a_window_finds_a_record_whose_chunk_ends_after_the_next_begins(tmp_path: Path, layout: str) -> None:
+    """A late frame opens a chunk earlier than the previous chunk's last record: the read by time
+    still takes that chunk (a block chunk declares its last record's time as its end)."""
+    path = tmp_path / f"late-{layout}.mcap"
+    with LogWriter(path, PAPER_LAYOUT, message_layout=layout, chunk_size_bytes=1024) as log:
+        times = [i * 1000 for i in range(40)]
+        times.insert(30, 500)  # after the first chunk closed
+        for t in times:
+            log.frame_raw(t, 0x181, True, 2, b"ab", 0)
+    for first in range(0, 40_000, 1000):
+        got = read_log(path, log_time_window_ns=(first, first)).frames["timestamp_ns"]
+        assert (got == first).sum() == 1, first
+
+
+def test_a_block_too_short_for_its_count_is_lost_to_check_sequences_without_a_traceback(
+    tmp_path: Path, run_writer: Any
+) -> None:
+    path = tmp_path / "short.mcap"
+    run_writer(path, 50, message_layout="blocks", compression="none", chunk_interval_ns=10**12)
+    blob = bytearray(path.read_bytes())
+    at = 0
+    while True:  # the sample block: shorten its record to its header and CDR header
+        at = blob.find(bytes([OP_MESSAGE]), at + 1)
+        _op, length, channel, seq, _t, _p = MESSAGE_HEADER.unpack_from(blob, at)
+        if channel == 1 and seq == 0 and blob[at + 31 : at + 35] == CDR_HEADER:
+            break
+    cut = blob[: at + 35] + blob[at + 9 + length :]  # no count, no records
+    struct.pack_into("<Q", cut, at + 1, 22 + 4)
+    p = tmp_path / "short-cut.mcap"
+    p.write_bytes(bytes(cut[: cut.rfind(b"\x0f")]))  # the chunk no longer fits its index: no summary either
+    report = check_sequences(p)  # the chunk is re-walked or skipped: never an IndexError
+    assert report[TOPIC_SAMPLE].messages == 0
+    data = read_log(p, verify_crc=False)
+    assert len(data.samples) == 0 and data.warnings
+
+
+def test_a_block_log_without_schemas_reads_through_its_log_format(tmp_path: Path, run_writer: Any) -> None:
+    path = tmp_path / "noschema.mcap"
+    run_writer(path, 500, message_layout="blocks")
+    whole = read_log(path)
+    blob = bytearray(path.read_bytes())
+    pos = 8
+    while pos < len(blob) - 8:  # hide every Schema and Channel record (opcode 0x80: unknown, skipped)
+        op, length = blob[pos], struct.unpack_from("<Q", blob, pos + 1)[0]
+        if op == 0x02:
+            break
+        if op in (0x03, 0x04):
+            blob[pos] = 0x80
+        pos += 9 + length
+    p = tmp_path / "hidden.mcap"
+    p.write_bytes(bytes(blob))
+    data = read_log(p)
+    assert any("channel schemas not found" in w for w in data.warnings)
+    _same(whole, data)
+
+
+def test_a_summary_claiming_more_records_than_the_chunks_hold_is_capped(tmp_path: Path) -> None:
+    """A crafted, closed block log: its summary claims 10**12 samples and its one chunk 2**50
+    bytes; the reader counts no more than the chunks it would decompress can hold (none here)."""
+    from mcap.writer import CompressionType, Writer
+
+    from dob_hil.log.metadata import log_format_metadata
+    from dob_hil.log.schemas import channel_specs
+
+    path = tmp_path / "crafted.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, compression=CompressionType.NONE)
+        w.start("x", "dob_hil")
+        ids = {}
+        for spec in channel_specs(PAPER_LAYOUT, "blocks"):
+            sid = w.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_data())
+            ids[spec.key] = w.register_channel(spec.topic, spec.message_encoding, sid)
+        w.add_metadata("log_format", log_format_metadata(PAPER_LAYOUT, "blocks"))
+        w.add_metadata("summary", {"samples_written": str(10**12)})
+        empty_block = CDR_HEADER + struct.pack("<II", 0, 0)
+        w.add_message(ids[1], log_time=1, data=empty_block, publish_time=1, sequence=0)
+        w.finish()
+    blob = bytearray(path.read_bytes())
+    pos = 8
+    while blob[pos] != 0x06:  # the chunk record: its uncompressed size, after its two times
+        pos += 9 + struct.unpack_from("<Q", blob, pos + 1)[0]
+    struct.pack_into("<Q", blob, pos + 9 + 16, 2**50)
+    path.write_bytes(bytes(blob))
+    data = read_log(path)
+    assert len(data.samples) == 0 and any("implausible uncompressed size" in w for w in data.warnings)
+    with open_stream(path, {TOPIC_SAMPLE: None}) as stream:
+        assert stream.counts[TOPIC_SAMPLE] == 0

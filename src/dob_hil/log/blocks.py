@@ -1,12 +1,14 @@
 """The block layout: a chunk's per-record Message records rewritten as one message per run.
 
 The control thread packs every record as its own MCAP Message record (:mod:`dob_hil.log.pipe`);
-with ``[log] layout = "blocks"`` the writer process rewrites each chunk before compressing it
+with ``[run] log_layout = "blocks"`` the writer process rewrites each chunk before compressing it
 (:func:`to_blocks`): the records of each fixed-size channel become block messages, each a run of
 consecutive records (sequence numbers one apart, log times non-decreasing) as a ros2msg sequence
 (:func:`dob_hil.log.schemas.block_msg_text`). Events stay one message each. A block's sequence
 number and log time are its first record's and its publish time its last record's, so a gap in a
-channel's records still shows as a gap between its blocks (:mod:`dob_hil.log.check`).
+channel's records still shows as a gap between its blocks (:mod:`dob_hil.log.check`). The chunk
+declares its end as its last record's time (``ChunkedFile.finish_chunk``: the greatest publish
+time), so a read by time finds every record of it; MCAP's own readers only see a wider range.
 
 Why: a Message record costs 31 bytes of header and 16 bytes of (uncompressed) message index, so at
 four records per sample they were 64 of the 223 bytes a lockstep sample took; a block pays them
@@ -22,14 +24,24 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from dob_hil.log.schemas import BLOCK_HEAD_BYTES, CDR_HEADER, MESSAGE_RECORD_OVERHEAD, OP_MESSAGE
+from dob_hil.log.schemas import (
+    BLOCK_HEAD_BYTES,
+    CDR_HEADER,
+    CDR_HEADER_U32,
+    MESSAGE_RECORD_OVERHEAD,
+    OP_MESSAGE,
+)
 
 _U32_MASK: Final = 0xFFFFFFFF
 _BLOCK_HEAD = struct.Struct("<BQHIQQ4sII")  # Message header, CDR header, count, padding
 _RECORD_BODY: Final = MESSAGE_RECORD_OVERHEAD + 4  # a record's body starts after its CDR header
 
 
-def _gather(buf: npt.NDArray[np.uint8], dtype: str, offsets: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+def gather_ints(
+    buf: bytes | npt.NDArray[np.uint8], dtype: str, offsets: npt.NDArray[np.int64]
+) -> npt.NDArray[np.int64]:
+    """Integers of ``dtype`` at byte ``offsets`` of ``buf`` (a one-byte-stride view), as int64;
+    every offset must leave room for one item."""
     item = np.dtype(dtype)
     view = np.ndarray((len(buf) - item.itemsize + 1,), item, buf, 0, (1,))
     return view[offsets].astype(np.int64)
@@ -53,6 +65,25 @@ def block_record_length(count: int, stride: int) -> int:
     return BLOCK_LENGTH_BASE + count * stride
 
 
+def block_counts(
+    buf: bytes, offsets: npt.NDArray[np.int64], lengths: npt.NDArray[np.int64], stride: int
+) -> npt.NDArray[np.int64]:
+    """The record count of each block message (Message records at ``offsets`` of ``buf``, with
+    their length fields ``lengths``, each lying within ``buf``), -1 for one that is damaged: too
+    short, not CDR, or a length that does not fit its count. The one rule every reader applies."""
+    long_enough = lengths >= BLOCK_LENGTH_BASE
+    head = np.where(long_enough, offsets + MESSAGE_RECORD_OVERHEAD, 0)  # the CDR header
+    cdr = gather_ints(buf, "<u4", head)
+    counts = gather_ints(buf, "<u4", np.where(long_enough, head + 4, 0))
+    good = long_enough & (cdr == CDR_HEADER_U32) & (lengths == BLOCK_LENGTH_BASE + counts * stride)
+    return np.where(good, counts, -1)
+
+
+def first_record_offsets(offsets: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Where the first record of each block message (Message records at ``offsets``) starts."""
+    return offsets + MESSAGE_RECORD_OVERHEAD + 4 + BLOCK_HEAD_BYTES
+
+
 def to_blocks(
     data: bytes, offsets: npt.NDArray[np.int64], bodies: dict[int, tuple[int, int]]
 ) -> tuple[bytes, list[int], dict[int, int]]:
@@ -65,8 +96,8 @@ def to_blocks(
     ValueError (the writer made it: a defect, not damage).
     """
     buf = np.frombuffer(data, dtype=np.uint8)
-    channels = _gather(buf, "<u2", offsets + 9)
-    lengths = _gather(buf, "<u8", offsets + 1)
+    channels = gather_ints(buf, "<u2", offsets + 9)
+    lengths = gather_ints(buf, "<u8", offsets + 1)
     pieces: list[tuple[int, bytes]] = []  # (position of the first record, record bytes)
     counts: dict[int, int] = {}
     in_block = np.zeros(len(offsets), dtype=bool)
@@ -79,8 +110,8 @@ def to_blocks(
             raise ValueError(f"channel {channel_id}: a record of another length than {expected}")
         in_block[where] = True
         starts = offsets[where]
-        seqs = _gather(buf, "<u4", starts + 11)
-        times = _gather(buf, "<u8", starts + 15)
+        seqs = gather_ints(buf, "<u4", starts + 11)
+        times = gather_ints(buf, "<u8", starts + 15)
         breaks = np.flatnonzero((seqs[1:] != ((seqs[:-1] + 1) & _U32_MASK)) | (times[1:] < times[:-1])) + 1
         rows = np.zeros((len(where), stride), dtype=np.uint8)
         rows[:, :body] = buf[(starts + _RECORD_BODY)[:, None] + np.arange(body)]
@@ -105,4 +136,12 @@ def to_blocks(
     return b"".join(p for _, p in pieces), out_offsets, counts
 
 
-__all__ = ["BLOCK_LENGTH_BASE", "block_record_length", "expand_runs", "to_blocks"]
+__all__ = [
+    "BLOCK_LENGTH_BASE",
+    "block_counts",
+    "block_record_length",
+    "expand_runs",
+    "first_record_offsets",
+    "gather_ints",
+    "to_blocks",
+]

@@ -74,8 +74,9 @@ _STRIDES = {
 def _block_records(topic: str, payload: bytes) -> range:
     """Where each frame of a block message starts, after its CDR header (the block layout)."""
     (count,) = struct.unpack_from("<I", payload, len(CDR_HEADER))
-    stride = _STRIDES[topic]
-    if len(payload) != len(CDR_HEADER) + BLOCK_HEAD_BYTES + count * stride:
+    stride = _STRIDES[topic]  # the rule of dob_hil.log.blocks.block_counts, on one payload
+    size = len(CDR_HEADER) + BLOCK_HEAD_BYTES + count * stride
+    if payload[: len(CDR_HEADER)] != CDR_HEADER or len(payload) != size:
         raise ValueError(f"{topic}: a block of {count} frames in {len(payload)} bytes")
     return range(BLOCK_HEAD_BYTES, BLOCK_HEAD_BYTES + count * stride, stride)
 
@@ -175,9 +176,10 @@ class McapCanReader(BinaryIOMessageReader):
             self.stop()
 
     def _in_log_time_order(self, reader: Any, offset_ns: int) -> Iterator[can.Message]:
-        """Every frame in log-time order. A block-layout log's block holds frames up to the next
-        block's start, so its frames wait in a heap until no later block can precede them; they
-        are ordered by their integer timestamp, then classic before FD (the block layout keeps no
+        """Every frame in log-time order. Blocks come in the order of their first frames, and the
+        blocks of the two CAN channels overlap in time, so a block's frames wait in a heap until
+        a block starting later arrives (no frame of a block precedes its first one); they are
+        ordered by their integer timestamp, then classic before FD (the block layout keeps no
         order between the two channels' frames of equal timestamp), then file order."""
         pending: list[tuple[int, int, int, can.Message]] = []
         n = 0

@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from dob_hil.errors import LogReadError
-from dob_hil.log.blocks import BLOCK_LENGTH_BASE, expand_runs
+from dob_hil.log.blocks import block_counts, expand_runs
 from dob_hil.log.reader import _gather, _Reader
-from dob_hil.log.schemas import MESSAGE_RECORD_OVERHEAD
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,11 +68,8 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
             for cid in np.unique(table.channels).tolist():
                 mine = table.channels == cid
                 if cid in blocks:  # a block numbers its first record: the others follow it
-                    counts = _gather(
-                        group.buf, np.dtype("<u4"), table.offsets[mine] + MESSAGE_RECORD_OVERHEAD + 4
-                    ).astype(np.int64)
-                    # a block whose length does not fit its count is damaged: its records count as lost
-                    counts[table.lengths[mine] != BLOCK_LENGTH_BASE + counts * blocks[cid]] = 0
+                    counts = block_counts(group.buf, table.offsets[mine], table.lengths[mine], blocks[cid])
+                    counts[counts < 0] = 0  # a damaged block, which read_log skips: its records are lost
                     numbers = expand_runs(seqs[mine].astype(np.int64), counts, 1)
                     parts.setdefault(int(cid), []).append(numbers & 0xFFFFFFFF)
                 else:

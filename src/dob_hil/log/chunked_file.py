@@ -43,7 +43,7 @@ from mcap.records import (
 )
 from mcap.writer import MCAP0_MAGIC
 
-from dob_hil.log.blocks import to_blocks
+from dob_hil.log.blocks import gather_ints, to_blocks
 from dob_hil.log.schemas import ChannelSpec, block_stride, body_size
 
 try:  # lz4 is optional
@@ -53,13 +53,6 @@ except ImportError:  # pragma: no cover
 
 ZSTD_LEVEL: Final = 3
 _INDEX_HEAD = struct.Struct("<BQHI")  # MessageIndex: opcode, length, channel, records length
-
-
-def _gather(buf: bytes, dtype: str, offsets: npt.NDArray[np.int64]) -> npt.NDArray[np.uint64]:
-    """Values of ``dtype`` at byte ``offsets`` of ``buf`` (a one-byte-stride view)."""
-    item = np.dtype(dtype)
-    view = np.ndarray((len(buf) - item.itemsize + 1,), item, buf, 0, (1,))
-    return view[offsets].astype(np.uint64)
 
 
 def _end(builder: RecordBuilder) -> bytes:
@@ -157,9 +150,12 @@ class ChunkedFile:
         if self.blocks:
             data, block_offsets, block_counts = to_blocks(data, offsets, self.blocks)
             offsets = np.asarray(block_offsets, dtype=np.int64)
-        channels = _gather(data, "<u2", offsets + 9)
-        log_times = _gather(data, "<u8", offsets + 15)
+        channels = gather_ints(data, "<u2", offsets + 9)
+        log_times = gather_ints(data, "<u8", offsets + 15).astype(np.uint64)
         start_time, end_time = int(log_times.min()), int(log_times.max())
+        if block_counts:  # a block's records reach its publish time (its last record's log time):
+            # declared as the chunk's end, so that a read by time finds every record of the chunk
+            end_time = max(end_time, int(gather_ints(data, "<u8", offsets + 23).max()))
         if self.compression == "zstd":
             compressed = self.cctx.compress(data)
         elif self.compression == "lz4" and _lz4_frame is not None:

@@ -33,18 +33,19 @@ import zstandard
 
 from dob_hil.errors import LogReadError
 from dob_hil.log import mcap_scan
-from dob_hil.log.blocks import BLOCK_LENGTH_BASE, block_record_length, expand_runs
+from dob_hil.log.blocks import block_counts, expand_runs, first_record_offsets
 from dob_hil.log.mcap_scan import ChunkRef, FileMap
 from dob_hil.log.schemas import (
-    BLOCK_HEAD_BYTES,
     BLOCK_SUFFIX,
     CDR_HEADER_U32,
+    MESSAGE_LAYOUTS,
     MESSAGE_RECORD_OVERHEAD,
     TOPIC_CAN,
     TOPIC_CAN_FD,
     TOPIC_EVENT,
     TOPIC_SAMPLE,
     TOPIC_TRUTH,
+    WRITTEN_KEYS,
     Field,
     LogLayout,
     SchemaError,
@@ -85,13 +86,8 @@ _JSON_HEADER_DTYPE: Final = np.dtype(
 )  # fmt: skip
 
 StructArray = npt.NDArray[np.void]
-# the writer's summary: records written per fixed-size topic (exact counts of a block channel)
-_WRITTEN_KEYS: Final = {
-    TOPIC_SAMPLE: "samples_written",
-    TOPIC_CAN: "frames_written",
-    TOPIC_CAN_FD: "fd_frames_written",
-    TOPIC_TRUTH: "truth_written",
-}
+# the writer's summary key of each channel's records written
+_WRITTEN_KEY_OF_TOPIC: Final = {s.topic: WRITTEN_KEYS[s.key] for s in channel_specs(LogLayout(1, 1, 1, 1))}
 
 _READ_THREADS: Final = 2  # chunk decompression workers (zstd and crc32 release the GIL)
 _READ_AHEAD: Final = 32  # chunks in flight at most, to bound memory
@@ -252,14 +248,8 @@ class _Reader:
         layout = self._layout()
         if log_time_window_ns is not None:  # after the channels: a summary-less log finds them in chunk 1
             first_ns, last_ns = log_time_window_ns
-            chunks = fmap.chunks
-            ends = [c.end_time_ns for c in chunks]
-            if self.block_channels():  # a chunk's last blocks reach up to the next chunk's first one
-                ends = [*(c.start_time_ns for c in chunks[1:]), 1 << 64][: len(chunks)]
-                ends = [max(e, c.end_time_ns) for e, c in zip(ends, chunks, strict=True)]
-            fmap.chunks = [
-                c for c, e in zip(chunks, ends, strict=True) if e >= first_ns and c.start_time_ns <= last_ns
-            ]
+            # (a block-layout chunk declares its last record's time as its end: see blocks.py)
+            fmap.chunks = [c for c in fmap.chunks if c.end_time_ns >= first_ns and c.start_time_ns <= last_ns]
         fixed, event_channel = self._outputs(layout)
         events: list[dict[str, Any]] = []
         for group in self._groups():
@@ -334,7 +324,11 @@ class _Reader:
             ids = json.loads(fmt.get("channels", "{}"))
         except ValueError:
             ids = {}
-        specs = {spec.topic: spec for spec in channel_specs(layout)}
+        message_layout = fmt.get("message_layout", "samples")
+        if message_layout not in MESSAGE_LAYOUTS:
+            self.warnings.append(f"log_format: unknown message layout {message_layout!r}; read as samples")
+            message_layout = "samples"
+        specs = {spec.topic: spec for spec in channel_specs(layout, message_layout)}
         for key, topic in ids.items() if isinstance(ids, dict) else ():
             spec = specs.get(str(topic))
             if spec is not None and str(key).isdigit():
@@ -416,14 +410,15 @@ class _Reader:
 
     def _block_records(self, topic: str, stride: int) -> int:
         """Records of a block channel: the writer's count for a log it closed (its summary), else
-        those of every readable block whose length fits its count (each chunk decompressed once
-        more: a damaged log only). Never more than the chunks can hold (a crafted summary)."""
-        most = sum(c.uncompressed_size for c in self.fmap.chunks) // stride
-        key = _WRITTEN_KEYS.get(topic)
-        written = self.fmap.metadata.get("summary", {}).get(key or "")
+        those of every readable block (each chunk decompressed once more: a log cut short only).
+        Never more than the chunks the reader would decompress can hold (a crafted summary)."""
+        sizes = [c.uncompressed_size for c in self.fmap.chunks]
+        limits = [chunk_claim_limit(c.data_length) for c in self.fmap.chunks]
+        most = sum(size for size, limit in zip(sizes, limits, strict=True) if size <= limit) // stride
+        written = self.fmap.metadata.get("summary", {}).get(_WRITTEN_KEY_OF_TOPIC.get(topic, ""))
         if self.fmap.complete and written is not None and written.isdigit():
             return min(int(written), most)
-        channel_ids = [c.id for c in self.fmap.channels.values() if c.topic == topic]
+        channel_ids = {c.id for c in self.fmap.channels.values() if c.topic == topic}
         total = 0
         for chunk in self.fmap.chunks:
             if not any(chunk.indexes.get(cid, (0, 0))[1] for cid in channel_ids):
@@ -432,13 +427,14 @@ class _Reader:
             if data is None:
                 continue
             walk = mcap_scan.walk_chunk(data)
-            for offset, cid, length in zip(walk.offsets, walk.channels, walk.lengths, strict=True):
-                count_at = offset + MESSAGE_RECORD_OVERHEAD + 4  # after the CDR header
-                if cid not in channel_ids or count_at + 4 > len(data):
-                    continue
-                count = int.from_bytes(data[count_at : count_at + 4], "little")
-                if length == block_record_length(count, stride):
-                    total += count
+            mine = [i for i, cid in enumerate(walk.channels) if cid in channel_ids]
+            counts = block_counts(
+                data,
+                np.asarray([walk.offsets[i] for i in mine], dtype=np.int64),
+                np.asarray([walk.lengths[i] for i in mine], dtype=np.int64),
+                stride,
+            )
+            total += int(counts[counts > 0].sum())
         return min(total, most)
 
     # ------------------------------------------------------------------ chunks
@@ -674,18 +670,14 @@ class _Reader:
     ) -> npt.NDArray[np.int64]:
         """Where each record of the channel's block messages starts (the block layout): a block
         whose length does not match its count, or not CDR, is skipped with a warning."""
-        head = offsets + MESSAGE_RECORD_OVERHEAD
-        long_enough = lengths >= BLOCK_LENGTH_BASE
-        cdr = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head, 0))
-        counts = _gather(group.buf, np.dtype("<u4"), np.where(long_enough, head + 4, 0)).astype(np.int64)
-        good = long_enough & (cdr == CDR_HEADER_U32)
-        good &= lengths == BLOCK_LENGTH_BASE + counts * out.stride
+        counts = block_counts(group.buf, offsets, lengths, out.stride)
+        good = counts >= 0
         if not good.all():
             self.warnings.append(
                 f"{out.topic}: {int((~good).sum())} blocks of the wrong length or encoding skipped"
             )
-            head, counts = head[good], counts[good]
-        return expand_runs(head + 4 + BLOCK_HEAD_BYTES, counts, out.stride)
+            offsets, counts = offsets[good], counts[good]
+        return expand_runs(first_record_offsets(offsets), counts, out.stride)
 
     def _checked_messages(
         self, group: _Group, offsets: npt.NDArray[np.int64], lengths: npt.NDArray[np.int64], out: _Fixed

@@ -350,7 +350,7 @@ def decode_event_cdr(payload: bytes | bytearray | memoryview) -> dict[str, objec
 class ChannelSpec:
     """One channel of the log: its topic, schema and encodings. ``fields`` is None for JSON.
 
-    ``block``: the channel's messages are blocks (``[log] layout = "blocks"``): each holds a run
+    ``block``: the channel's messages are blocks (``[run] log_layout = "blocks"``): each holds a run
     of consecutive records of ``fields`` as one sequence (:func:`block_msg_text`)."""
 
     key: int  # channel number on the writer pipe, and the MCAP channel id the writer assigns
@@ -423,7 +423,15 @@ CH_TRUTH: Final = 4
 CH_EVENT: Final = 5
 
 
-MESSAGE_LAYOUTS: Final = ("samples", "blocks")  # [log] layout: one message per record, or blocks
+# the writer's summary metadata: records written per channel (exact counts of a block channel)
+WRITTEN_KEYS: Final = {
+    CH_SAMPLE: "samples_written",
+    CH_CAN: "frames_written",
+    CH_CAN_FD: "fd_frames_written",
+    CH_TRUTH: "truth_written",
+    CH_EVENT: "events_written",
+}
+MESSAGE_LAYOUTS: Final = ("samples", "blocks")  # [run] log_layout: one message per record, or blocks
 
 
 def channel_specs(layout: LogLayout, message_layout: str = "samples") -> tuple[ChannelSpec, ...]:

@@ -131,10 +131,12 @@ class LogWriter:
     ``metadata`` maps record name to key/value strings ("run", "versions", ...; "versions" and
     "log_format" are filled in if absent); ``attachments`` maps a file name ("design.json",
     "config.toml") to its bytes. A chunk is finished when it holds ``chunk_size_bytes`` or has
-    been open ``chunk_interval_ns``; the batch goes to the process when :meth:`flush` finds it
-    larger than ``flush_bytes`` or older than ``flush_interval_ns``, and always when it reaches
-    ``batch_bytes``. ``backpressure``: wait for the writer rather than drop (module docstring);
-    a writer process that takes nothing for ``stall_timeout_s`` while the loop waits is a failure.
+    been open ``chunk_interval_ns`` (``chunk_size_bytes`` default: 256 KiB, 1 MiB for the block
+    layout, ``message_layout="blocks"``: see :mod:`dob_hil.log.blocks`); the batch goes to the
+    process when :meth:`flush` finds it larger than ``flush_bytes`` or older than
+    ``flush_interval_ns``, and always when it reaches ``batch_bytes``. ``backpressure``: wait for
+    the writer rather than drop (module docstring); a writer process that takes nothing for
+    ``stall_timeout_s`` while the loop waits is a failure.
     """
 
     def __init__(

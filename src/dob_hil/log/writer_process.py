@@ -27,25 +27,14 @@ from typing import Any, BinaryIO
 from dob_hil.log import pipe
 from dob_hil.log.chunked_file import ChunkedFile
 from dob_hil.log.schemas import (
-    CH_CAN,
-    CH_CAN_FD,
-    CH_EVENT,
-    CH_SAMPLE,
-    CH_TRUTH,
     OP_MESSAGE,
+    WRITTEN_KEYS,
     LogLayout,
     channel_specs,
 )
 
 _READ_BYTES = 1 << 20
 _HEAD = pipe.RECORD_HEAD
-_WRITTEN_KEYS = {
-    CH_SAMPLE: "samples_written",
-    CH_CAN: "frames_written",
-    CH_CAN_FD: "fd_frames_written",
-    CH_TRUTH: "truth_written",
-    CH_EVENT: "events_written",
-}
 
 
 class LogFile:
@@ -89,7 +78,7 @@ class LogFile:
 
     def written(self) -> dict[str, int]:
         """Records per kind in finished chunks (those that reached the file)."""
-        counts = {key: int(self.file.record_counts.get(ch, 0)) for ch, key in _WRITTEN_KEYS.items()}
+        counts = {key: int(self.file.record_counts.get(ch, 0)) for ch, key in WRITTEN_KEYS.items()}
         counts["chunks"] = self.chunks
         return counts
 
