@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import random
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -207,3 +209,34 @@ def test_python_can_logger_cli_records_a_bus_to_mcap(tmp_path: Path) -> None:
     got = list(can.LogReader(str(out)))
     assert [m.arbitration_id for m in got] == [0x300 + i for i in range(20)], done.stderr
     assert all(bytes(m.data) == bytes([m.arbitration_id - 0x300] * 4) for m in got)
+
+
+@pytest.mark.parametrize("layout", ["samples", "blocks"])
+def test_a_cut_or_flipped_log_gives_frames_or_one_log_read_error(
+    tmp_path: Path, run_writer: Any, layout: str
+) -> None:
+    """Whatever mcap's reader raises on a damaged file (its EndOfFile, RecordLengthLimitExceeded,
+    a KeyError for a channel it never saw, ...) reaches the caller as LogReadError."""
+    from dob_hil.errors import LogReadError
+
+    src = tmp_path / "src.mcap"
+    run_writer(src, 150, chunk_size_bytes=1024, compression="none", message_layout=layout)
+    blob = src.read_bytes()
+    rnd = random.Random(3)
+    damaged = tmp_path / "damaged.mcap"
+    outcomes = set()
+    for i in range(120):
+        if i % 2:
+            data = bytearray(blob)
+            data[rnd.randrange(len(data))] ^= 1 << rnd.randrange(8)
+        else:
+            data = bytearray(blob[: rnd.randrange(len(blob))])
+        damaged.write_bytes(bytes(data))
+        try:
+            frames = list(can.LogReader(str(damaged)))
+        except LogReadError:
+            outcomes.add("error")
+            continue
+        outcomes.add("frames")
+        assert len(frames) <= 300
+    assert outcomes == {"error", "frames"}

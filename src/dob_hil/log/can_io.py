@@ -30,6 +30,7 @@ from typing import Any, BinaryIO, cast
 
 import can
 from can.io.generic import BinaryIOMessageReader, BinaryIOMessageWriter
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
@@ -65,6 +66,11 @@ _CAN_BODY = struct.Struct("<" + struct_body_format(can_fields(CAN_DATA_BYTES)))
 _CAN_FD_BODY = struct.Struct("<" + struct_body_format(can_fields(CAN_FD_DATA_BYTES)))
 CHUNK_BYTES = 256 * 1024
 _U64 = struct.Struct("<Q")
+# mcap's reader on damaged input: its own errors (EndOfFile, RecordLengthLimitExceeded, ...), and
+# what a cut or crafted record makes Python raise (a length past the end, a missing channel, ...)
+_DAMAGE = (
+    McapError, ValueError, struct.error, EOFError, KeyError, IndexError, OverflowError, MemoryError, OSError,
+)  # fmt: skip
 _STRIDES = {
     TOPIC_CAN: block_stride(can_fields(CAN_DATA_BYTES)),
     TOPIC_CAN_FD: block_stride(can_fields(CAN_FD_DATA_BYTES)),
@@ -170,7 +176,7 @@ class McapCanReader(BinaryIOMessageReader):
                 if msg.is_rx and msg.arbitration_id in tx_ids:
                     continue  # a received copy of a frame we sent (udp_multicast's loopback)
                 yield msg
-        except (ValueError, struct.error, EOFError) as exc:  # mcap raises these on damaged input
+        except _DAMAGE as exc:  # what mcap's reader raises on a damaged or crafted file
             raise LogReadError(f"{getattr(self.file, 'name', 'MCAP')}: not a readable MCAP: {exc}") from None
         finally:
             self.stop()

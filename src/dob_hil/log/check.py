@@ -102,17 +102,24 @@ def _summarise(topic: str, chunks: list[np.ndarray], made: int | None) -> Channe
     unique, counts = np.unique(seqs, return_counts=True)
     repeated = unique[counts > 1]
     last = max(int(unique[-1]), (made or 0) - 1)
-    present = np.zeros(last + 1, dtype=bool)
-    present[unique] = True
-    absent = np.flatnonzero(~present)
+    # the gaps between the numbers present (no array as long as the numbers: a damaged or crafted
+    # sequence number may be anywhere up to 2**32, the summary's count up to 2**40)
+    gap_starts = np.concatenate(([0], unique + 1))
+    gap_ends = np.concatenate((unique, [last + 1]))
+    sizes = np.maximum(gap_ends - gap_starts, 0)
+    first_missing: list[int] = []
+    for start, size in zip(gap_starts[sizes > 0].tolist(), sizes[sizes > 0].tolist(), strict=True):
+        first_missing += range(start, start + min(size, 10 - len(first_missing)))
+        if len(first_missing) >= 10:
+            break
     return ChannelSequence(
         topic=topic,
         messages=len(seqs),
         first=int(seqs[0]),
         last=last,
-        missing=len(absent),
+        missing=int(sizes.sum()),
         duplicates=int(np.sum(counts[counts > 1] - 1)),
-        first_missing=absent[:10].tolist(),
+        first_missing=first_missing,
         first_duplicates=repeated[:10].tolist(),
     )
 
