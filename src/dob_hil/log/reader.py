@@ -120,7 +120,7 @@ class _Fixed:
     out: StructArray
     filled: int = 0
     record_dtype: np.dtype[np.void] | None = None  # the message layout, where dtype is a subset
-    counted: int = 0  # messages the chunks' indexes count (records, for a block channel)
+    counted: int = 0  # messages the chunks' indexes count (a block channel: records, -1 until asked)
     stride: int = 0  # a block channel: bytes per record in a block (0: one record per message)
 
     def reserve(self, extra: int) -> None:
@@ -345,7 +345,7 @@ class _Reader:
 
     def _outputs(self, layout: LogLayout, preallocate: bool = True) -> tuple[dict[int, _Fixed], int | None]:
         """The outputs of the channels read (arrays of the indexed message counts, or empty
-        ones with ``preallocate`` False; ``out.counted`` holds the count) and the event channel."""
+        ones with ``preallocate`` False; :meth:`counted` gives the count) and the event channel."""
         counts: dict[int, int] = {}
         for chunk in self.fmap.chunks:
             for channel_id, (_, count) in chunk.indexes.items():
@@ -375,8 +375,11 @@ class _Reader:
                 )
                 continue
             stride = block_stride(fields) if block else 0
-            n = self._block_records(channel.topic, stride) if block else counts.get(channel.id, 0)
-            size = n if preallocate else 0
+            if block:  # counted when needed (a log cut short is decompressed once more for it)
+                n = self._block_records(channel.topic, stride) if preallocate else -1
+            else:
+                n = counts.get(channel.id, 0)
+            size = max(n, 0) if preallocate else 0
             keep = self.fields.get(channel.topic)
             if keep is None:
                 fixed[channel.id] = _Fixed(
@@ -407,6 +410,12 @@ class _Reader:
                 with contextlib.suppress(SchemaError):  # an unusable schema: its channel is skipped
                     strides[c.id] = block_stride(record_fields(schema))
         return strides
+
+    def counted(self, out: _Fixed) -> int:
+        """Records of ``out``'s channel the indexes count (a block channel's, counted now if not yet)."""
+        if out.counted < 0:
+            out.counted = self._block_records(out.topic, out.stride)
+        return out.counted
 
     def _block_records(self, topic: str, stride: int) -> int:
         """Records of a block channel: the writer's count for a log it closed (its summary), else

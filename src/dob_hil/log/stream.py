@@ -58,7 +58,12 @@ class LogStream:
             self._empty[spec.topic] = full if names is None else np.zeros(0, _subset(full.dtype, names))
         for out in self._fixed.values():
             self._empty[out.topic] = np.zeros(0, out.dtype)
-        self.counts = {out.topic: out.counted for out in self._fixed.values()}  # from the indexes
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Records per channel, from the message indexes (a block log's: its summary, or for a log
+        cut short a pass over its blocks, made on the first call)."""
+        return {out.topic: self._reader.counted(out) for out in self._fixed.values()}
 
     @property
     def warnings(self) -> list[str]:
