@@ -23,7 +23,7 @@ _COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("dob_hil.commands.demo", "the paper's step scenario with and without the DOB"),
     "analyze": ("dob_hil.commands.analyze", "metrics and plots from MCAP logs"),
     "replay": ("dob_hil.commands.replay", "re-run, re-design or re-send a logged run"),
-    "export": ("dob_hil.commands.export", "write a log's frames as BLF/ASC/CSV"),
+    "export": ("dob_hil.commands.export", "a log's frames as BLF/ASC/CSV, or the log in another layout"),
     "doctor": ("dob_hil.commands.doctor", "check the CAN interface and the host before a real-time run"),
     "campaign": ("dob_hil.commands.campaign", "robustness campaign: many lockstep runs, a table, a report"),
     "config": ("dob_hil.commands.config", "the config reference (--doc) or a commented starter (--template)"),
@@ -191,9 +191,15 @@ def _add_arguments(name: str, p: argparse.ArgumentParser) -> None:
         _add_doctor_arguments(p)
     elif name == "export":
         p.add_argument("log", help="MCAP log")
-        p.add_argument("--format", required=True, choices=("blf", "asc", "csv"))
+        p.add_argument("--format", required=True, choices=("blf", "asc", "csv", "mcap"))
         p.add_argument("--out", help="output path (default: beside the log)")
         p.add_argument("--samples", action="store_true", help="csv: the samples, not the frames")
+        p.add_argument(
+            "--log-layout",
+            choices=("samples", "blocks"),
+            help="mcap: the whole log rewritten in this message layout (samples: Foxglove plots every "
+            "field against time; blocks: about 40%% smaller)",
+        )
     elif name == "campaign":
         _add_campaign_arguments(p)
     elif name == "profiles":
