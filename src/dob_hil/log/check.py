@@ -12,15 +12,13 @@ and the log call it on every log they make (:func:`assert_complete`).
 from __future__ import annotations
 
 import json
-import mmap
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from dob_hil.errors import LogReadError
 from dob_hil.log.blocks import block_counts, expand_runs
-from dob_hil.log.reader import _gather, _Reader
+from dob_hil.log.reader import _gather, _Reader, map_log
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,13 +48,7 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
     as it reads (what is lost shows as missing numbers).
     """
     path = Path(path)
-    try:
-        with path.open("rb") as f:
-            if f.seek(0, 2) == 0:
-                raise LogReadError(f"{path}: empty file, not an MCAP log")
-            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    mm = map_log(path)
     try:
         reader = _Reader(mm, str(path), None, True)
         reader._learn_channels()

@@ -22,10 +22,9 @@ import numpy as np
 import numpy.typing as npt
 
 import dob_hil
-from dob_hil.errors import LogReadError
 from dob_hil.log.blocks import block_counts, first_record_offsets, gather_ints
 from dob_hil.log.chunked_file import ChunkedFile
-from dob_hil.log.reader import _Reader, record_fields
+from dob_hil.log.reader import _Reader, map_log, record_fields
 from dob_hil.log.schemas import (
     CDR_HEADER_U32,
     MESSAGE_LAYOUTS,
@@ -71,13 +70,7 @@ def convert_layout(source: Path, target: Path, message_layout: str) -> Converted
     """Write ``source``'s records to ``target`` in ``message_layout`` ("samples" or "blocks")."""
     if message_layout not in MESSAGE_LAYOUTS:
         raise ValueError(f"message layout {message_layout!r}")
-    try:
-        with source.open("rb") as f:
-            if f.seek(0, 2) == 0:
-                raise LogReadError(f"{source}: empty file, not an MCAP log")
-            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise LogReadError(f"{source}: cannot read: {exc}") from exc
+    mm = map_log(source)
     try:
         return _convert(mm, source, target, message_layout)
     finally:

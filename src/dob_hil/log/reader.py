@@ -150,6 +150,17 @@ class _Group:
         self.buf = self.datas[0] if len(self.datas) == 1 else b"".join(self.datas)
 
 
+def map_log(path: Path) -> mmap.mmap:
+    """The log file mapped read-only; LogReadError for an empty or unreadable file."""
+    try:
+        with path.open("rb") as f:
+            if f.seek(0, 2) == 0:
+                raise LogReadError(f"{path}: empty file, not an MCAP log")
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except OSError as exc:
+        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+
+
 def read_log(
     path: Path | str,
     *,
@@ -170,14 +181,7 @@ def read_log(
     a few fields. A field the message does not have raises :class:`LogReadError`.
     """
     path = Path(path)
-    try:
-        with path.open("rb") as f:
-            size = f.seek(0, 2)
-            if size == 0:
-                raise LogReadError(f"{path}: empty file, not an MCAP log")
-            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    mm = map_log(path)
     try:
         keep = None if fields is None else {topic: tuple(names) for topic, names in fields.items()}
         reader = _Reader(mm, str(path), None if topics is None else set(topics), verify_crc, keep)
@@ -196,13 +200,7 @@ def iter_channel(
     :func:`read_log` restricted to the events, which maps the whole file cheaply).
     """
     path = Path(path)
-    try:
-        with path.open("rb") as f:
-            if f.seek(0, 2) == 0:
-                raise LogReadError(f"{path}: empty file, not an MCAP log")
-            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise LogReadError(f"{path}: cannot read: {exc}") from exc
+    mm = map_log(path)
     try:
         keep = None if fields is None else {topic: tuple(fields)}
         reader = _Reader(mm, str(path), {topic}, verify_crc, keep)

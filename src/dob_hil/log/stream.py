@@ -21,8 +21,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from dob_hil.errors import LogReadError
-from dob_hil.log.reader import LogData, StructArray, _fixed_specs, _Reader
+from dob_hil.log.reader import LogData, StructArray, _fixed_specs, _Reader, map_log
 from dob_hil.log.schemas import TOPIC_CAN, TOPIC_CAN_FD, TOPIC_EVENT, TOPIC_SAMPLE, TOPIC_TRUTH, LogLayout
 
 
@@ -155,13 +154,7 @@ def open_stream(
     """Open ``path`` for a pass over the channels in ``fields`` (topic -> the fields to keep, None
     for all). Raises LogReadError for a file that is no log at all (as :func:`read_log`)."""
     p = Path(path)
-    try:
-        with p.open("rb") as f:
-            if f.seek(0, 2) == 0:
-                raise LogReadError(f"{p}: empty file, not an MCAP log")
-            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise LogReadError(f"{p}: cannot read: {exc}") from exc
+    mm = map_log(p)
     try:
         return LogStream(p, mm, fields, events)
     except BaseException:
