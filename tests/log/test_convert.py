@@ -104,3 +104,52 @@ def test_the_command_line(logs: dict[str, Path], tmp_path: Path, capsys: pytest.
         assert cli.main(bad) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("dob-hil export: error:"), err
+
+
+@pytest.mark.parametrize("source", ["samples", "blocks"])
+def test_damaged_logs_convert_or_raise_log_read_error(tmp_path: Path, run_writer: Any, source: str) -> None:
+    """Cuts and bit flips (a schema name, a record length, ...): the conversion gives a readable
+    log or LogReadError, never another exception (a record of the wrong length is skipped)."""
+    import random
+
+    from dob_hil.errors import LogReadError
+
+    src = tmp_path / "src.mcap"
+    run_writer(src, 150, chunk_size_bytes=1024, message_layout=source, compression="none")
+    blob = src.read_bytes()
+    rnd = random.Random(1)
+    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
+    converted = 0
+    for i in range(80):
+        data = bytearray(blob[: rnd.randrange(len(blob))]) if i % 2 else bytearray(blob)
+        if i % 2 == 0:
+            for _ in range(rnd.choice([1, 3])):
+                at = rnd.randrange(len(data))
+                data[at] ^= 1 << rnd.randrange(8)
+        damaged.write_bytes(bytes(data))
+        for target in ("samples", "blocks"):
+            try:
+                convert_layout(damaged, out, target)
+            except LogReadError:
+                continue
+            read_log(out)
+            converted += 1
+    assert converted > 100
+
+
+def test_blocks_whose_schema_was_damaged_are_skipped_with_a_warning(tmp_path: Path, run_writer: Any) -> None:
+    """The sample channel's schema name damaged (``SampleBlocX``): its messages are no longer known
+    as blocks, and as samples they have the wrong length: skipped, named, the rest converted."""
+    src = tmp_path / "src.mcap"
+    run_writer(src, 100, message_layout="blocks")
+    whole = read_log(src)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(src.read_bytes().replace(b"dob_hil/msg/SampleBlock", b"dob_hil/msg/SampleBlocX"))
+    out = tmp_path / "out.mcap"
+    for target in ("blocks", "samples"):
+        result = convert_layout(damaged, out, target)
+        assert any("wrong length" in w for w in result.warnings), result.warnings
+        converted = read_log(out)
+        assert len(converted.samples) == 0
+        assert converted.truth.tobytes() == whole.truth.tobytes()
+        assert converted.frames.tobytes() == whole.frames.tobytes()

@@ -32,6 +32,7 @@ from dob_hil.log.schemas import (
     OP_MESSAGE,
     body_size,
     channel_specs,
+    record_length,
 )
 from dob_hil.log.writer import DEFAULT_BLOCK_CHUNK_SIZE_BYTES, DEFAULT_CHUNK_SIZE_BYTES
 
@@ -90,6 +91,8 @@ def _convert(mm: mmap.mmap, source: Path, target: Path, message_layout: str) -> 
     by_topic = {spec.topic: spec.key for spec in specs}
     # source channel id -> the target's (dob_hil's topics only; a capture may number them otherwise)
     ids = {c.id: by_topic[c.topic] for c in reader.fmap.channels.values() if c.topic in by_topic}
+    # a fixed-size channel's record length (a record of another length is damage: skipped, as read_log does)
+    sizes = {spec.key: record_length(spec.fields) for spec in specs if spec.fields is not None}
     out = Converted()
     chunk_bytes = DEFAULT_BLOCK_CHUNK_SIZE_BYTES if message_layout == "blocks" else DEFAULT_CHUNK_SIZE_BYTES
     file = ChunkedFile(str(target), f"dob_hil/{dob_hil.__version__} (convert)", specs, "zstd")
@@ -102,7 +105,8 @@ def _convert(mm: mmap.mmap, source: Path, target: Path, message_layout: str) -> 
             table = reader._table(group)
             keep = np.isin(table.channels, list(ids))
             offsets, channels, lengths = table.offsets[keep], table.channels[keep], table.lengths[keep]
-            for piece, starts in _pieces(group.buf, offsets, channels, lengths, blocks, bodies, ids, out):
+            plan = _Plan(blocks, bodies, ids, sizes)
+            for piece, starts in _pieces(group.buf, offsets, channels, lengths, plan, out):
                 file.add_messages(piece, 0, len(piece), starts)
                 if file.chunk_bytes >= chunk_bytes:
                     file.finish_chunk()
@@ -119,18 +123,25 @@ def _convert(mm: mmap.mmap, source: Path, target: Path, message_layout: str) -> 
     return out
 
 
+@dataclass(frozen=True)
+class _Plan:
+    blocks: dict[int, int]  # the source's block channels: id -> record stride
+    bodies: dict[int, int]  # their record body sizes
+    ids: dict[int, int]  # source channel id -> target channel id
+    sizes: dict[int, int]  # target channel id -> record length field (fixed-size channels)
+
+
 def _pieces(
     buf: bytes,
     offsets: npt.NDArray[np.int64],
     channels: npt.NDArray[np.int64],
     lengths: npt.NDArray[np.int64],
-    blocks: dict[int, int],
-    bodies: dict[int, int],
-    ids: dict[int, int],
+    plan: _Plan,
     out: Converted,
 ) -> list[tuple[bytes, list[int]]]:
     """The group's Message records, one record per record, in runs of at most RECORDS_PER_FEED,
     with the target's channel ids."""
+    blocks, bodies, ids, sizes = plan.blocks, plan.bodies, plan.ids, plan.sizes
     pieces: list[tuple[bytes, list[int]]] = []
     is_block = np.isin(channels, list(blocks))
     run: list[int] = []  # indexes of plain records, copied as they are
@@ -145,8 +156,13 @@ def _pieces(
         out.records += len(run)
         run.clear()
 
+    wrong = 0
     for i in range(len(offsets)):
         if not is_block[i]:
+            size = sizes.get(ids[int(channels[i])])
+            if size is not None and int(lengths[i]) != size:
+                wrong += 1
+                continue
             run.append(i)
             continue
         flush_run()
@@ -166,6 +182,8 @@ def _pieces(
             pieces.append((data[j * size : (j + n) * size], list(range(0, n * size, size))))
         out.records += count
     flush_run()
+    if wrong:
+        out.warnings.append(f"{wrong} messages of the wrong length skipped")
     return pieces
 
 
