@@ -19,8 +19,6 @@ jitter have no meaning without a wall clock and are ignored.
 
 from __future__ import annotations
 
-import math
-
 import can
 
 from dob_hil.config import Config
@@ -44,7 +42,6 @@ from firmware_sim.truth import GroundTruth
 _COMMAND = FrameResult.COMMAND
 _ENABLED = DriveState.ENABLED
 _new_tuple = tuple.__new__
-_floor = math.floor
 _Message = can.Message  # built positionally: dob_hil.link.base.MESSAGE_LEADING_PARAMS
 
 
@@ -195,17 +192,11 @@ class LockstepClock:
         # --- the sample (DriveCore.sample) --------------------------------------------------------
         c = plant._c
         position = c[0] * x0 + c[1] * x1  # PlantModel.position
-        encoder = core.encoder  # Encoder.read
-        scaled = position * encoder.counts_per_unit + 0.5
-        if scaled - scaled != 0.0:  # not finite, or beyond any count: the encoder faults (DriveCore.sample)
+        try:
+            counts = core.encoder.read(position)
+        except ValueError:  # not finite, or beyond any count: the encoder faults (DriveCore.sample)
             self._finish_period(core)
             return True
-        counts = _floor(scaled)
-        if encoder.noise_counts_std > 0.0:
-            counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
-        counts &= encoder._mask
-        if counts >= encoder._half:
-            counts -= encoder._span
         n = core._samples
         core._samples = n + 1
         stats.samples += 1

@@ -24,7 +24,6 @@ position) discovered half-way hands the rest of the period to the general path's
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -55,7 +54,6 @@ _SW_OE = STATUS_BITS[_OE] | SW_REMOTE
 _ENABLED = DriveState.ENABLED
 _CW_ENABLE_OPERATION = 0x000F  # the command bits of "enable operation" (power._command)
 _I32_MIN, _I32_MAX = -(2**31), 2**31 - 1
-_floor = math.floor
 _new_tuple = tuple.__new__
 _Message = can.Message
 
@@ -176,21 +174,14 @@ class FastPeriod:
         if core._watch_armed:
             core._missed_rpdo = 0  # an RPDO came in this period
         held_A = path.held_A
-        # --- sample (Cia402Core._sample, with Encoder.read inline) ---
-        position = plant.position()
-        encoder = core.encoder
-        scaled = position * encoder.counts_per_unit + 0.5
-        if scaled - scaled != 0.0:  # not finite or beyond any count, an encoder fault: the general tail
+        # --- sample (Cia402Core._sample) ---
+        try:
+            counts = core.encoder.read(plant.position())
+        except ValueError:  # not finite or beyond any count, an encoder fault: the general tail
             core._rpdo_since_sync = True
             core._pending.update(zip(RPDO_OBJECTS, (controlword, torque), strict=True))
             core._sync_tail(t, data[0] if data else None)  # the watchdog's share again: idempotent
             return True
-        counts = _floor(scaled)
-        if encoder.noise_counts_std > 0.0:
-            counts += _floor(encoder._rng.gauss(0.0, encoder.noise_counts_std) + 0.5)
-        counts &= encoder._mask
-        if counts >= encoder._half:
-            counts -= encoder._span
         last_t = core._sample_t_ns
         if last_t is not None and t > last_t:
             step = ((counts - core.counts + 2**31) % 2**32) - 2**31
