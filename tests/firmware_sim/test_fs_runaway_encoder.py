@@ -34,19 +34,24 @@ def _enabled_clock(fused: bool, **config: Any) -> tuple[LockstepClock, deque[Any
     return clock, to_drive, from_drive, truths
 
 
+def _command(clock: Any, to_drive: Any, code: int) -> str | None:
+    """Answer the drive's last feedback with ``code`` and service it: the name of what it raised."""
+    seq = clock.core.last_seq
+    assert seq is not None
+    payload = encode_command(CommandFrame(code, seq & 0x7F, True))
+    to_drive.append(can.Message(arbitration_id=clock.core.command_id, data=payload, is_extended_id=False))
+    try:
+        clock.service()
+    except Exception as exc:
+        return type(exc).__name__
+    return None
+
+
 def _run(fused: bool, x: list[float]) -> tuple[Any, ...]:
     clock, to_drive, from_drive, _truths = _enabled_clock(fused)
     from_drive.clear()
     clock.core.plant._x = list(x)
-    seq = clock.core.last_seq
-    assert seq is not None
-    payload = encode_command(CommandFrame(0, seq & 0x7F, True))
-    to_drive.append(can.Message(arbitration_id=clock.core.command_id, data=payload, is_extended_id=False))
-    try:
-        clock.service()
-        error = None
-    except Exception as exc:  # the fused path must not raise where the general path faults
-        error = type(exc).__name__
+    error = _command(clock, to_drive, 0)  # the fused path must not raise where the general path faults
     core = clock.core
     frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
     return error, core.state, core.time_ns, frames, vars(core.stats), core.path.held_A
@@ -71,14 +76,8 @@ def _runaway(fused: bool) -> tuple[Any, ...]:
     )
     error = None
     for _ in range(600):
-        seq = clock.core.last_seq
-        assert seq is not None
-        payload = encode_command(CommandFrame(100, seq & 0x7F, True))
-        to_drive.append(can.Message(arbitration_id=clock.core.command_id, data=payload, is_extended_id=False))
-        try:
-            clock.service()
-        except Exception as exc:
-            error = type(exc).__name__
+        error = _command(clock, to_drive, 100)
+        if error is not None:
             break
     core = clock.core
     frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
