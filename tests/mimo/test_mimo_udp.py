@@ -52,7 +52,7 @@ class AxesTruthReceiver:
 
 
 def test_two_nodes_of_a_standalone_drive_over_udp_multicast(tmp_path: Path, udp_channel: UdpChannel) -> None:
-    node = node_id_for_worker()
+    node = node_id_for_worker(count=2)  # nodes node and node + 1
     patience = "watchdog_periods = 1000\nfeedback_timeout_periods = 1000\n"
     text = mimo_text(
         {

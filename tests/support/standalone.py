@@ -29,13 +29,15 @@ def paper_config_for_node(tmp_path: Path, node_id: int, *, patience_periods: int
     return scenario_variant("paper-step", tmp_path, node_id=node_id, patience_periods=patience_periods)
 
 
-def node_id_for_worker() -> int:
-    """A random node id of this xdist worker's own range (a second line of defence: the traffic is
-    already private to this worker's network namespace and the test's own port, udp_isolation)."""
+def node_id_for_worker(count: int = 1) -> int:
+    """A random node id of this xdist worker's own range, such that the ``count`` ids from it
+    (the nodes of a several-axis drive) all lie in the range (a second line of defence: the
+    traffic is already private to this worker's network namespace and the test's own port,
+    udp_isolation)."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     index = int(worker[2:]) if worker[2:].isdigit() else 0
-    low = 2 + 7 * (index % 2)  # the native protocol has nodes 0..15
-    return random.randint(low, low + 6)
+    low = 2 + 7 * (index % 2)  # the native protocol has nodes 0..15: ranges 2..8 and 9..15
+    return random.randint(low, low + 7 - count)
 
 
 class TruthReceiver:
