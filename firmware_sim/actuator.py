@@ -51,8 +51,12 @@ class CurrentPath:
         per-period path's common case)."""
         times = self._times_ns
         if times and times[0] <= t_ns:
-            self.apply_due(t_ns)
-        return not self._times_ns
+            if len(times) == 1:  # the one change the last period scheduled (apply_due, inline)
+                self.held_A = self._currents_A.pop()
+                times.pop()
+            else:
+                self.apply_due(t_ns)
+        return not times
 
     @property
     def final_A(self) -> float:

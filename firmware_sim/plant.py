@@ -10,7 +10,14 @@ cell at the change, resolved to ``SPLIT_RESOLUTION_NS``; the pieces' matrices ar
 and cached.
 
 The matrices are kept as Python floats: for the 2-state plant the cell update is hand-unrolled,
-which is several times faster than numpy on 2x2 arrays.
+which is several times faster than numpy on 2x2 arrays. A 2-state plant also advances a whole
+period (cells ``k * substeps`` to ``(k + 1) * substeps``, the lockstep drives' every step) in one
+update, ``x+ = Phi_h^S x + (sum_i Phi_h^i Gam_h) u + d_k``: the same cells composed (the matrices
+by the cell recurrence, in the same order every time), with ``d_k``, the period's disturbance
+cells run through the cell recurrence from a zero state, computed for blocks of periods at once
+(vectorised, element by element, so the same on every machine). Every 2-state path (one period,
+whole cells, cell pieces) takes whole periods this way, so all give the same bits; the result
+differs from cell-by-cell updates by rounding only.
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ from firmware_sim.disturbance import Disturbance
 
 SPLIT_RESOLUTION_NS = 1000  # a current change inside a sub-step is placed to the nearest us
 DISTURBANCE_BLOCK = 4096  # cell disturbance values computed together (vectorised), then cached
+PERIOD_BLOCK = 1024  # periods whose disturbance terms d_k are computed together, then cached
+_NO_BLOCK = -(1 << 62)  # no block cached: every period falls outside it
 
 _Matrices = tuple[list[list[float]], list[float]]
 
@@ -85,6 +94,10 @@ class PlantModel:
         self._m2 = (
             (phi[0][0], phi[0][1], phi[1][0], phi[1][1], gam[0], gam[1]) if self.n_states == 2 else None
         )
+        self._p2 = _compose_period(self._m2, substeps) if self._m2 is not None else None
+        self._d_first = _NO_BLOCK  # the first period of the cached block
+        self._d0: list[float] = []  # d_k of the cached block of periods, per state
+        self._d1: list[float] = []
         self._split_max = max(1, round(self.cell_ns / SPLIT_RESOLUTION_NS))
         self._w_block_index = -1
         self._w_block: list[float] = []
@@ -151,37 +164,107 @@ class PlantModel:
         boundaries (always so for a lockstep period). Otherwise False with nothing changed, and the
         caller takes :meth:`advance`.
 
-        The per-period hot path of the lockstep drives (native, CiA 402 and ODrive). As :meth:`advance`, an
-        arithmetic error in the update (overflow) propagates with the state unchanged."""
-        m2 = self._m2
-        S, P = self.substeps, self.period_ns
-        j0, r0 = divmod(t0_ns * S, P)
-        j1, r1 = divmod(t1_ns * S, P)
-        if m2 is None or r0 or r1:
+        The per-period hot path of the lockstep drives (native, CiA 402 and ODrive): one whole
+        period is one composed update (module docstring). As :meth:`advance`, an arithmetic error
+        in the update (overflow) propagates with the state unchanged."""
+        p2 = self._p2
+        P = self.period_ns
+        if p2 is None or self._m2 is None:
             return False
-        p00, p01, p10, p11, g0, g1 = m2
+        if t1_ns - t0_ns != P or t0_ns % P:  # not one whole period: whole cells, if on the grid
+            S = self.substeps
+            j0, r0 = divmod(t0_ns * S, P)
+            j1, r1 = divmod(t1_ns * S, P)
+            if r0 or r1:
+                return False
+            self._cells_2state(j0, j1, current_A)
+            return True
+        a00, a01, a10, a11, b0, b1 = p2
         x0, x1 = self._x
         u = current_A
         if self._disturbance.is_zero:
+            self._x = [a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u]
+            return True
+        k = t0_ns // P - self._d_first
+        if not 0 <= k < PERIOD_BLOCK:
+            k = self._load_d_block(t0_ns // P)
+        self._x = [a00 * x0 + a01 * x1 + b0 * u + self._d0[k], a10 * x0 + a11 * x1 + b1 * u + self._d1[k]]
+        return True
+
+    def _cells_2state(self, j0: int, j1: int, u: float) -> None:
+        """Cells j0 .. j1-1 of the 2-state plant: cell by cell up to the first period boundary,
+        whole periods composed, cell by cell after the last one (same arithmetic as
+        :meth:`advance_2state`'s one period)."""
+        m2, p2 = self._m2, self._p2
+        assert m2 is not None and p2 is not None
+        S = self.substeps
+        first_k = -(-j0 // S)  # the first whole period
+        last_k = j1 // S
+        if first_k >= last_k:  # no whole period inside
+            self._cell_steps(j0, j1, u)
+            return
+        self._cell_steps(j0, first_k * S, u)
+        a00, a01, a10, a11, b0, b1 = p2
+        x0, x1 = self._x
+        if self._disturbance.is_zero:
+            for _ in range(first_k, last_k):
+                x0, x1 = a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u
+        else:
+            for k in range(first_k, last_k):
+                o = k - self._d_first
+                if not 0 <= o < PERIOD_BLOCK:
+                    o = self._load_d_block(k)
+                x0, x1 = (
+                    a00 * x0 + a01 * x1 + b0 * u + self._d0[o],
+                    a10 * x0 + a11 * x1 + b1 * u + self._d1[o],
+                )
+        self._x = [x0, x1]
+        self._cell_steps(last_k * S, j1, u)
+
+    def _cell_steps(self, j0: int, j1: int, u: float) -> None:
+        """Cells j0 .. j1-1 of the 2-state plant one by one."""
+        if j1 <= j0:
+            return
+        m2 = self._m2
+        assert m2 is not None
+        p00, p01, p10, p11, g0, g1 = m2
+        x0, x1 = self._x
+        if self._disturbance.is_zero:
             for _ in range(j0, j1):
                 x0, x1 = p00 * x0 + p01 * x1 + g0 * u, p10 * x0 + p11 * x1 + g1 * u
-        elif j1 > j0:
-            block, o0 = divmod(j0, DISTURBANCE_BLOCK)
-            o1 = o0 + j1 - j0
-            if block == self._w_block_index and o1 <= DISTURBANCE_BLOCK:
-                ws = self._w_block[o0:o1]
-            else:
-                ws = self._w_cells(j0, j1)
-            for w in ws:
+        else:
+            for w in self._w_cells(j0, j1):
                 v = u + w
                 x0, x1 = p00 * x0 + p01 * x1 + g0 * v, p10 * x0 + p11 * x1 + g1 * v
         self._x = [x0, x1]
-        return True
+
+    def _load_d_block(self, period: int) -> int:
+        """Cache d_k of the block of periods holding ``period``; returns its offset in the block.
+        d_k: the period's disturbance cells (midpoint values, as :meth:`_w`) through the cell
+        recurrence from a zero state."""
+        m2 = self._m2
+        assert m2 is not None
+        p00, p01, p10, p11, g0, g1 = m2
+        S = self.substeps
+        block_first = period // PERIOD_BLOCK * PERIOD_BLOCK
+        first = block_first * S
+        t_s = (np.arange(first, first + PERIOD_BLOCK * S, dtype=np.float64) + 0.5) * self.cell_s
+        w = self._disturbance.values_A(t_s).reshape(PERIOD_BLOCK, S)
+        d0 = np.zeros(PERIOD_BLOCK)
+        d1 = np.zeros(PERIOD_BLOCK)
+        for i in range(S):
+            wi = w[:, i]
+            d0, d1 = p00 * d0 + p01 * d1 + g0 * wi, p10 * d0 + p11 * d1 + g1 * wi
+        self._d0, self._d1 = d0.tolist(), d1.tolist()
+        self._d_first = block_first
+        return period - block_first
 
     def disturbance_changed(self) -> None:
-        """The disturbance's origin moved: drop the cached per-cell values."""
+        """The disturbance's origin moved: drop the cached per-cell and per-period values."""
         self._w_block_index = -1
         self._w_block = []
+        self._d_first = _NO_BLOCK
+        self._d0, self._d1 = [], []
 
     def _split_index(self, remainder: int) -> int:
         # remainder / substeps ns into the cell, in units of SPLIT_RESOLUTION_NS
@@ -218,16 +301,7 @@ class PlantModel:
     def _cells(self, j0: int, j1: int, u: float) -> None:
         """Whole cells j0 .. j1-1 with the full sub-step matrices (the hot path)."""
         if self._m2 is not None:
-            p00, p01, p10, p11, g0, g1 = self._m2
-            x0, x1 = self._x
-            if self._disturbance.is_zero:
-                for _ in range(j0, j1):
-                    x0, x1 = p00 * x0 + p01 * x1 + g0 * u, p10 * x0 + p11 * x1 + g1 * u
-            else:
-                for w in self._w_cells(j0, j1):
-                    v = u + w
-                    x0, x1 = p00 * x0 + p01 * x1 + g0 * v, p10 * x0 + p11 * x1 + g1 * v
-            self._x = [x0, x1]
+            self._cells_2state(j0, j1, u)
             return
         if self._disturbance.is_zero:
             for _ in range(j0, j1):
@@ -262,3 +336,22 @@ class PlantModel:
         if m is None:
             m = self._tail_cache[k] = self._matrices((self.cell_ns - k * SPLIT_RESOLUTION_NS) * 1e-9)
         return m
+
+
+def _compose_period(
+    m2: tuple[float, float, float, float, float, float], substeps: int
+) -> tuple[float, float, float, float, float, float]:
+    """(Phi_h^S, sum_i Phi_h^i Gam_h) of a 2-state plant, unrolled as ``m2``: the cell recurrence
+    run ``substeps`` times on the identity and on a zero input vector with unit input."""
+    p00, p01, p10, p11, g0, g1 = m2
+    a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
+    b0 = b1 = 0.0
+    for _ in range(substeps):
+        a00, a01, a10, a11 = (
+            p00 * a00 + p01 * a10,
+            p00 * a01 + p01 * a11,
+            p10 * a00 + p11 * a10,
+            p10 * a01 + p11 * a11,
+        )
+        b0, b1 = p00 * b0 + p01 * b1 + g0, p10 * b0 + p11 * b1 + g1
+    return a00, a01, a10, a11, b0, b1

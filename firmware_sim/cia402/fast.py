@@ -70,6 +70,13 @@ class FastPlan:
     sync_len: int  # 0, or 1 with the SYNC counter (0x1019 > 0)
     tpdo_id: int
     tpdo_pack: Callable[..., bytes]
+    # settings only a general-path frame (an SDO write, NMT) changes, read once per plan
+    period_ns: int
+    origin_ns: int
+    extra_delay_ns: int
+    mode_cst: bool
+    max_torque: int
+    rated_current_mA: int
 
 
 def fast_plan(core: Cia402Core) -> FastPlan | None:
@@ -107,6 +114,12 @@ def fast_plan(core: Cia402Core) -> FastPlan | None:
         sync_len=1 if core.sync_overflow > 0 else 0,
         tpdo_id=tpdo.cob_id,
         tpdo_pack=tpdo.packer.pack,
+        period_ns=core.period_ns,
+        origin_ns=core.origin_ns,
+        extra_delay_ns=core.extra_delay_ns,
+        mode_cst=core.mode == ob.MODE_CST,
+        max_torque=core.max_torque,
+        rated_current_mA=core.rated_current_mA,
     )
 
 
@@ -148,9 +161,9 @@ class FastPeriod:
         stats.rpdos += n_rpdos
         # --- integrate to the SYNC instant (Cia402Core._integrate_to) ---
         now_ns = core.time_ns
-        t = now_ns + core.period_ns
-        origin = core.origin_ns
-        assert origin is not None  # the plan's precondition
+        period_ns = plan.period_ns
+        t = now_ns + period_ns
+        origin = plan.origin_ns
         path, plant = core.path, core.plant
         tau = now_ns - origin
         times = path._times_ns
@@ -162,12 +175,12 @@ class FastPeriod:
                 path.apply_due(tau)
         if not times:  # one current over the whole period (as _integrate_to would hold it)
             held = path.held_A
-            if not plant.advance_2state(tau, t - origin, held):
-                plant.advance(tau, t - origin, held)
+            if not plant.advance_2state(tau, tau + period_ns, held):
+                plant.advance(tau, tau + period_ns, held)
             core.time_ns = t
         else:
             core._integrate_to(t)
-        period_index = t // core.period_ns
+        period_index = t // period_ns
         core.period_index = period_index
         core._last_sync_ns = t
         core._missed_sync = 0
@@ -191,8 +204,8 @@ class FastPeriod:
         core.counts = counts
         # --- the TPDO (Cia402Core._queue_tpdos with the statusword of Cia402Core.statusword) ---
         sw = _SW_OE
-        mode_cst = core.mode == ob.MODE_CST
-        if mode_cst and not controlword & CW_HALT:
+        follows = plan.mode_cst and not controlword & CW_HALT
+        if follows:
             sw |= SW_FOLLOWS_COMMAND
         if core.saturated:
             sw |= SW_INTERNAL_LIMIT
@@ -201,12 +214,12 @@ class FastPeriod:
         core._tpdo_last[0] = payload
         # --- take the RPDO (Cia402Core._apply, _controlword, _update_current) ---
         core.target_torque = torque
-        effective = torque if mode_cst and not controlword & CW_HALT else 0
-        limit = core.max_torque
+        effective = torque if follows else 0
+        limit = plan.max_torque
         clamped = -limit if effective < -limit else limit if effective > limit else effective
         core.saturated = clamped != effective
-        t_apply = t - origin + core.extra_delay_ns
-        current_A = clamped * core.rated_current_mA * 1e-6
+        t_apply = t - origin + plan.extra_delay_ns
+        current_A = clamped * plan.rated_current_mA * 1e-6
         times = path._times_ns
         if not times or t_apply >= times[-1]:  # CurrentPath.schedule's common case
             times.append(t_apply)

@@ -44,6 +44,7 @@ import can
 from dob_hil.config import Config
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import DLC, AxisState, CmdId, ODriveError
+from dob_hil.link.protocol import DriveState
 from firmware_sim.impairments import FeedbackImpairment
 from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
 from firmware_sim.threads import DriveThreads
@@ -55,6 +56,7 @@ _CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL
 _TORQUE = struct.Struct("<f4x")  # Set_Input_Torque's payload (codec.decode_set_input_torque)
 _ESTIMATES = struct.Struct("<ff")
 _F32_MAX = codec.F32_MAX
+_ENABLED = DriveState.ENABLED
 
 
 class OdriveLockstep:
@@ -220,7 +222,7 @@ class OdriveLockstep:
         the same order; anything else samples through the core."""
         core = self.core
         rows = self._rows_2
-        x = core.plant.state
+        x = tuple(core.plant._x)  # plant.state without the property
         pos_unit = math.nan
         if rows is not None and self.fast:
             c0, c1, v0, v1 = rows
@@ -233,7 +235,8 @@ class OdriveLockstep:
             noise_counts = core.rng.normal(0.0, std) if std > 0 else 0.0
             tpu = core.turns_per_unit
             pos_turns = pos_unit * tpu + (offset_counts + noise_counts) / core.cpr
-            vel_turns = sum((v0 * x[0], v1 * x[1])) * tpu  # the core's sum over C A x, same order
+            # the core's sum() over C A x: the same order, from the same int 0
+            vel_turns = (0 + v0 * x[0] + v1 * x[1]) * tpu
             core.stats.samples += 1
             if -_F32_MAX <= pos_turns <= _F32_MAX and -_F32_MAX <= vel_turns <= _F32_MAX:
                 payload = _ESTIMATES.pack(pos_turns, vel_turns)
@@ -245,7 +248,12 @@ class OdriveLockstep:
                 t_s = t * 1e-9
                 origin_s = d.origin_s
                 w_A = 0.0 if origin_s is None or t_s < origin_s else d.inner.value_A(t_s - origin_s)
-                state = (t // core.period_ns, t, x, w_A, core.path.held_A, core.drive_state)
+                # core.drive_state without the property: ENABLED in closed loop without an error
+                if core.axis_state is _CLOSED_LOOP and not core.axis_error:
+                    drive_state = _ENABLED
+                else:
+                    drive_state = core.drive_state
+                state = (t // core.period_ns, t, x, w_A, core.path.held_A, drive_state)
                 truth = tuple.__new__(GroundTruth, state)
         else:
             payload, truth = core.estimates()

@@ -159,7 +159,9 @@ class Cia402DriveLink(ClosingLink):
             self._ids = codec.cob_ids(drive.node_id)
         except ProtocolError as exc:
             raise ConfigError("drive.node_id", str(exc)) from None
-        self._quantizer = DacQuantizer(drive)
+        self._quantizer = DacQuantizer(drive, on_nonfinite=self._nonfinite_current)
+        self.quantize = self._quantizer.quantize  # type: ignore[method-assign]  # (see quantize)
+        self._limit_code = self._quantizer.limit_code
         self._options: Cia402Options = options_of(drive.options)
         self._config = config
         self._drive = drive
@@ -196,6 +198,7 @@ class Cia402DriveLink(ClosingLink):
         self._controlword = Command.SHUTDOWN.word  # what the RPDO carries
         self._awaiting_tpdo = False
         self._sync_counter = 0
+        self._sync_msg = can.Message(0.0, codec.SYNC_ID, False, False, False, None, None, b"")
         self._state: PowerState | None = None
         self._statusword: int | None = None
         self._nmt_state: NmtState | None = None
@@ -212,7 +215,7 @@ class Cia402DriveLink(ClosingLink):
     @property
     def limit_code(self) -> int:
         """The largest |target torque| in per mille ever sent."""
-        return self._quantizer.limit_code
+        return self._limit_code
 
     @property
     def node_id(self) -> int:
@@ -529,10 +532,9 @@ class Cia402DriveLink(ClosingLink):
         self._awaiting_tpdo = True
         if self._options.sync_counter:
             self._sync_counter = self._sync_counter % codec.SYNC_COUNTER_MAX + 1
-            payload = codec.encode_sync(self._sync_counter)
-        else:
-            payload = b""
-        self._send(codec.SYNC_ID, payload, "SYNC")
+            self._send(codec.SYNC_ID, codec.encode_sync(self._sync_counter), "SYNC")
+        else:  # the one SYNC frame there is, built once (nobody changes a frame once sent)
+            self._send(codec.SYNC_ID, b"", "SYNC", self._sync_msg)
         self.stats.syncs += 1
         return self._clock_ns()
 
@@ -595,16 +597,19 @@ class Cia402DriveLink(ClosingLink):
 
     def quantize(self, current_A: tuple[float, ...]) -> tuple[tuple[int, ...], tuple[float, ...], bool]:
         """((per mille,), (per mille * dac_lsb_A,), saturated), clamped at the current limit; a
-        non-finite current gives 0 and an INVALID_COMMAND event."""
-        result = self._quantizer.quantize(current_A)
-        if result[0][0] == 0 and result[2]:
-            self.stats.nonfinite_currents += 1
-            self._event(
-                self._clock_ns(),
-                LinkEventKind.INVALID_COMMAND,
-                f"node {self._node}: non-finite current {current_A[0]!r} A requested; 0 per mille commanded",
-            )
-        return result
+        non-finite current gives 0 and an INVALID_COMMAND event.
+
+        (An instance's ``quantize`` is its quantizer's own method, bound in ``__init__``, which
+        reports a non-finite current to :meth:`_nonfinite_current`: one call per period.)"""
+        return self._quantizer.quantize(current_A)
+
+    def _nonfinite_current(self, u: float) -> None:
+        self.stats.nonfinite_currents += 1
+        self._event(
+            self._clock_ns(),
+            LinkEventKind.INVALID_COMMAND,
+            f"node {self._node}: non-finite current {u!r} A requested; 0 per mille commanded",
+        )
 
     def send_command(self, codes: tuple[int, ...], answers_seq: int) -> int:
         """RPDO1: the controlword (enable operation while enabled) and the target torque in per
@@ -612,7 +617,7 @@ class Cia402DriveLink(ClosingLink):
         if len(codes) != N_AXES:
             raise ProtocolError(f"RPDO1: the cia402 profile drives 1 axis, got {len(codes)} codes")
         code = codes[0]
-        limit = self._quantizer.limit_code
+        limit = self._limit_code
         limited = -limit if code < -limit else limit if code > limit else code
         if limited != code:
             self.stats.clamped_commands += 1
@@ -782,12 +787,14 @@ class Cia402DriveLink(ClosingLink):
                 self._event_hook(LinkEvent(time_ns, kind, message))
 
     # --- sending, stopping ---------------------------------------------------------------------------------
-    def _send(self, arbitration_id: int, payload: bytes, what: str) -> None:
+    def _send(self, arbitration_id: int, payload: bytes, what: str, msg: can.Message | None = None) -> None:
+        """Send a classic frame (``msg``: the frame of ``arbitration_id`` and ``payload``, built before)."""
         if self._closed:
             self._check_open()
-        # positional: (timestamp, arbitration_id, is_extended_id, is_remote_frame, is_error_frame,
-        # channel, dlc, data), a quarter cheaper than keywords on the per-sample path
-        msg = can.Message(0.0, arbitration_id, False, False, False, None, None, payload)
+        if msg is None:
+            # positional: (timestamp, arbitration_id, is_extended_id, is_remote_frame,
+            # is_error_frame, channel, dlc, data), a quarter cheaper than keywords on the per-sample path
+            msg = can.Message(0.0, arbitration_id, False, False, False, None, None, payload)
         try:
             self._bus.send(msg)
         except can.CanError as exc:
