@@ -51,6 +51,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 from typing import Any, Final
 
 import can
@@ -253,7 +254,7 @@ class Cia402DriveLink(ClosingLink):
         self._check_open()
         network = _HookedNetwork(self._bus, self._on_config_tx)
         try:
-            node = canopen.RemoteNode(self._node, str(self._options.eds_path))
+            node = canopen.RemoteNode(self._node, _object_dictionary(self._options.eds_path, self._node))
         except Exception as exc:
             raise ConfigError(
                 "drive.cia402.eds", f"{self._options.eds_path}: not a readable EDS/DCF: {exc}"
@@ -841,6 +842,20 @@ class Cia402DriveLink(ClosingLink):
 
 def _hex(value: int | None) -> str:
     return "?" if value is None else f"0x{value:08X}"
+
+
+def _object_dictionary(path: Path, node_id: int) -> canopen.ObjectDictionary:
+    """The EDS/DCF parsed for ``node_id`` (``$NODEID`` resolved): parsed once per file version and
+    node, since parsing takes several ms and a campaign or benchmark enables many sessions in one
+    process. The link only reads the dictionary (its SDO variables and PDO maps are the node's)."""
+    st = path.stat()
+    return _parse_od(str(path), st.st_mtime_ns, st.st_size, node_id)
+
+
+@functools.lru_cache(maxsize=16)
+def _parse_od(path: str, mtime_ns: int, size: int, node_id: int) -> canopen.ObjectDictionary:
+    del mtime_ns, size  # part of the cache key: an edited file is parsed again
+    return canopen.import_od(path, node_id)
 
 
 def _describe(msg: can.Message) -> str:
