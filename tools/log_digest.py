@@ -11,7 +11,9 @@ without wall-clock fields). Run it before and after a change and compare the out
     diff before.txt after.txt
 
 ``--log-layout blocks`` writes the logs in the block layout: the digests are those of the default
-layout (the same records, read back alike).
+layout (the same records, read back alike). ``--parts`` adds a digest per part (samples, frames,
+FD frames, the truth's plant state, the rest of the truth, events), to show which part a change
+moved: a new integration order, for one, moves the plant state by rounding and nothing else.
 """
 
 from __future__ import annotations
@@ -52,6 +54,8 @@ def main(argv: list[str]) -> int:
         if layout not in ("samples", "blocks"):
             print(f"log_digest: --log-layout: expected samples or blocks, got {layout!r}", file=sys.stderr)
             return 2
+    parts = "--parts" in argv
+    argv = [a for a in argv if a != "--parts"]
     only = set(argv)
     with tempfile.TemporaryDirectory(prefix="log-digest-") as tmp:
         for scenario in SCENARIOS:
@@ -60,7 +64,9 @@ def main(argv: list[str]) -> int:
             for label, config in cases(scenario):
                 path = Path(tmp) / f"{label}.mcap"
                 run_session(config, RunOptions(duration_s=DURATION_S, log_path=path, log_layout=layout))
-                print(f"{label:32s} {log_digest(path)}", flush=True)
+                digest = log_digest(path)
+                extra = f" {digest.parts_text()}" if parts else ""
+                print(f"{label:32s} {digest}{extra}", flush=True)
     return 0
 
 
