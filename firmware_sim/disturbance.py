@@ -39,10 +39,11 @@ class _SeededNoise:
         self.seed = seed
         self.interval_s = interval_s
         self.start_s = start_s
-        self._block_index = -1
+        self._block_index: int | None = None
         self._block: list[float] = []
 
     def sample_A(self, index: int) -> float:
+        """Sample ``index`` (>= 0)."""
         block, offset = divmod(index, NOISE_BLOCK)
         if block != self._block_index:
             rng = np.random.default_rng([self.seed, block])
@@ -56,9 +57,12 @@ class _SeededNoise:
         return self.sample_A(math.floor(t_s / self.interval_s))
 
     def values_A(self, t_s: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        index = np.floor(t_s / self.interval_s).astype(np.int64)
-        out = np.array([self.sample_A(int(i)) for i in index], dtype=np.float64)
-        out[t_s < self.start_s] = 0.0
+        """:meth:`value_A` at every element (0 before ``start_s``: a time before the origin, once
+        the origin has moved, has no sample to draw)."""
+        out = np.zeros(t_s.shape, dtype=np.float64)
+        on = t_s >= self.start_s
+        index = np.floor(t_s[on] / self.interval_s).astype(np.int64)
+        out[on] = [self.sample_A(int(i)) for i in index]
         return out
 
 

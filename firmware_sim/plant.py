@@ -13,11 +13,13 @@ The matrices are kept as Python floats: for the 2-state plant the cell update is
 which is several times faster than numpy on 2x2 arrays. A 2-state plant also advances a whole
 period (cells ``k * substeps`` to ``(k + 1) * substeps``, the lockstep drives' every step) in one
 update, ``x+ = Phi_h^S x + (sum_i Phi_h^i Gam_h) u + d_k``: the same cells composed (the matrices
-by the cell recurrence, in the same order every time), with ``d_k``, the period's disturbance
-cells run through the cell recurrence from a zero state, computed for blocks of periods at once
-(vectorised, element by element, so the same on every machine). Every 2-state path (one period,
+by the cell recurrence, in the same order every time), with ``d_k = sum_i Phi_h^(S-1-i) Gam_h
+w_i`` over the period's disturbance cells, computed with numpy for a block of periods at once
+(:func:`periods_per_block`). Every 2-state path (one period,
 whole cells, cell pieces) takes whole periods this way, so all give the same bits; the result
-differs from cell-by-cell updates by rounding only.
+differs from cell-by-cell updates by rounding only, while it is finite (a state or current that
+overflows can end as a different mix of infinities and NaNs; the encoder faults in the same
+period either way).
 """
 
 from __future__ import annotations
@@ -35,8 +37,15 @@ from firmware_sim.disturbance import Disturbance
 
 SPLIT_RESOLUTION_NS = 1000  # a current change inside a sub-step is placed to the nearest us
 DISTURBANCE_BLOCK = 4096  # cell disturbance values computed together (vectorised), then cached
-PERIOD_BLOCK = 1024  # periods whose disturbance terms d_k are computed together, then cached
-_NO_BLOCK = -(1 << 62)  # no block cached: every period falls outside it
+_NO_BLOCK = -(1 << 62)  # no block cached: no cell or period index falls inside it
+
+
+def periods_per_block(substeps: int) -> int:
+    """Periods whose disturbance terms d_k are computed together, then cached: as many as fit in
+    ``DISTURBANCE_BLOCK`` cells (at least one), so a cache load costs what a cell block costs
+    whatever the sub-steps (a real-time tick pays it between two deadlines)."""
+    return max(1, DISTURBANCE_BLOCK // substeps)
+
 
 _Matrices = tuple[list[list[float]], list[float]]
 
@@ -95,11 +104,13 @@ class PlantModel:
             (phi[0][0], phi[0][1], phi[1][0], phi[1][1], gam[0], gam[1]) if self.n_states == 2 else None
         )
         self._p2 = _compose_period(self._m2, substeps) if self._m2 is not None else None
+        self._period_block = periods_per_block(substeps)
+        self._d_w: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None = None
         self._d_first = _NO_BLOCK  # the first period of the cached block
         self._d0: list[float] = []  # d_k of the cached block of periods, per state
         self._d1: list[float] = []
         self._split_max = max(1, round(self.cell_ns / SPLIT_RESOLUTION_NS))
-        self._w_block_index = -1
+        self._w_block_index = _NO_BLOCK
         self._w_block: list[float] = []
         self._head_cache: dict[int, _Matrices] = {}
         self._tail_cache: dict[int, _Matrices] = {}
@@ -186,7 +197,7 @@ class PlantModel:
             self._x = [a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u]
             return True
         k = t0_ns // P - self._d_first
-        if not 0 <= k < PERIOD_BLOCK:
+        if not 0 <= k < self._period_block:
             k = self._load_d_block(t0_ns // P)
         self._x = [a00 * x0 + a01 * x1 + b0 * u + self._d0[k], a10 * x0 + a11 * x1 + b1 * u + self._d1[k]]
         return True
@@ -210,9 +221,10 @@ class PlantModel:
             for _ in range(first_k, last_k):
                 x0, x1 = a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u
         else:
+            block = self._period_block
             for k in range(first_k, last_k):
                 o = k - self._d_first
-                if not 0 <= o < PERIOD_BLOCK:
+                if not 0 <= o < block:
                     o = self._load_d_block(k)
                 x0, x1 = (
                     a00 * x0 + a01 * x1 + b0 * u + self._d0[o],
@@ -240,28 +252,36 @@ class PlantModel:
 
     def _load_d_block(self, period: int) -> int:
         """Cache d_k of the block of periods holding ``period``; returns its offset in the block.
-        d_k: the period's disturbance cells (midpoint values, as :meth:`_w`) through the cell
-        recurrence from a zero state."""
-        m2 = self._m2
-        assert m2 is not None
-        p00, p01, p10, p11, g0, g1 = m2
-        S = self.substeps
-        block_first = period // PERIOD_BLOCK * PERIOD_BLOCK
+        d_k: the period's disturbance cells (midpoint values, as :meth:`_w`) weighted by
+        ``Phi_h^(S-1-i) Gam_h``, the cell recurrence's effect of cell i at the period's end."""
+        n, S = self._period_block, self.substeps
+        block_first = period // n * n
         first = block_first * S
-        t_s = (np.arange(first, first + PERIOD_BLOCK * S, dtype=np.float64) + 0.5) * self.cell_s
-        w = self._disturbance.values_A(t_s).reshape(PERIOD_BLOCK, S)
-        d0 = np.zeros(PERIOD_BLOCK)
-        d1 = np.zeros(PERIOD_BLOCK)
-        for i in range(S):
-            wi = w[:, i]
-            d0, d1 = p00 * d0 + p01 * d1 + g0 * wi, p10 * d0 + p11 * d1 + g1 * wi
-        self._d0, self._d1 = d0.tolist(), d1.tolist()
+        t_s = (np.arange(first, first + n * S, dtype=np.float64) + 0.5) * self.cell_s
+        w = self._disturbance.values_A(t_s).reshape(n, S)
+        m0, m1 = self._d_weights()
+        self._d0, self._d1 = (w * m0).sum(axis=1).tolist(), (w * m1).sum(axis=1).tolist()
         self._d_first = block_first
         return period - block_first
 
+    def _d_weights(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Per state, ``Phi_h^(S-1-i) Gam_h`` for the cells i of a period (computed once)."""
+        if self._d_w is None:
+            m2 = self._m2
+            assert m2 is not None
+            p00, p01, p10, p11, g0, g1 = m2
+            S = self.substeps
+            m0, m1 = np.empty(S), np.empty(S)
+            v0, v1 = g0, g1  # the last cell: Gam_h; each earlier one: Phi_h times the next
+            for i in range(S - 1, -1, -1):
+                m0[i], m1[i] = v0, v1
+                v0, v1 = p00 * v0 + p01 * v1, p10 * v0 + p11 * v1
+            self._d_w = (m0, m1)
+        return self._d_w
+
     def disturbance_changed(self) -> None:
         """The disturbance's origin moved: drop the cached per-cell and per-period values."""
-        self._w_block_index = -1
+        self._w_block_index = _NO_BLOCK
         self._w_block = []
         self._d_first = _NO_BLOCK
         self._d0, self._d1 = [], []

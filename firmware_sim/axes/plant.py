@@ -56,6 +56,7 @@ class CoupledPlantModel(PlantModel):
         self.inputs = disturbances
         super().__init__(plant, substeps, cast(Disturbance, disturbances), initial_state)
         self._m2 = None  # the unrolled 2-state path is single-input
+        self._p2 = None  # (and so is its whole-period update)
         self._xv: Vector = np.asarray(self._x, dtype=np.float64)
         phi = cast(tuple[Vector, Vector], self._full)[0]
         powers = [np.eye(self.n_states)]

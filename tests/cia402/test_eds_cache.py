@@ -34,3 +34,21 @@ def test_an_edited_file_is_parsed_again(tmp_path: Path) -> None:
     after = cia402_link._object_dictionary(eds, 5)
     assert after is not before
     assert isinstance(after, canopen.ObjectDictionary)
+
+
+def test_a_same_size_copy_with_the_old_mtime_is_parsed_again(tmp_path: Path) -> None:
+    """cp -p / shutil.copy2 / rsync -t keep the modification time: the change time or inode moves."""
+    eds = tmp_path / "drive.eds"
+    shutil.copyfile(DEFAULT_EDS, eds)
+    before = cia402_link._object_dictionary(eds, 5)
+    text = eds.read_text()
+    edited = text.replace("ProductName=Generic", "ProductName=Genera1", 1)
+    assert len(edited) == len(text) and edited != text
+    other = tmp_path / "other.eds"
+    other.write_text(edited)
+    st = eds.stat()
+    os.utime(other, ns=(st.st_atime_ns, st.st_mtime_ns))
+    os.replace(other, eds)
+    assert eds.stat().st_mtime_ns == st.st_mtime_ns and eds.stat().st_size == st.st_size
+    after = cia402_link._object_dictionary(eds, 5)
+    assert after is not before

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from dob_hil.config import Config
 from firmware_sim.disturbance import Disturbance
-from firmware_sim.plant import DISTURBANCE_BLOCK, PERIOD_BLOCK, PlantModel, zoh
+from firmware_sim.plant import DISTURBANCE_BLOCK, PlantModel, periods_per_block, zoh
 
 NO_DESIGN = {"estimator": {}, "feedback": {}, "dob": {}}
 DISTURBANCES: dict[str, list[dict[str, object]] | None] = {
@@ -67,8 +67,10 @@ def _pair(substeps: int, disturbance: str, state: list[float]) -> tuple[PlantMod
     start_period=st.one_of(
         st.integers(0, 50_000),
         st.integers(DISTURBANCE_BLOCK // 10 - 3, DISTURBANCE_BLOCK // 10),
-        st.integers(PERIOD_BLOCK - 3, PERIOD_BLOCK),
-        st.integers(7 * PERIOD_BLOCK - 3, 7 * PERIOD_BLOCK),
+        # the per-period disturbance cache's block boundaries, for each substeps drawn
+        st.sampled_from(
+            [periods_per_block(s) * m - d for s in (1, 3, 7, 10) for m in (1, 7) for d in range(4)]
+        ),
     ),
     spans=st.lists(st.tuples(st.integers(0, 3), current), min_size=1, max_size=8),
 )
@@ -166,7 +168,7 @@ def test_whole_periods_equal_the_cell_recurrence_to_rounding(disturbance: str, s
     plant, _ = _pair(substeps, disturbance, [0.02, -1.5])
     period_ns = plant.period_ns
     rng = np.random.default_rng(substeps)
-    first = PERIOD_BLOCK - 20
+    first = periods_per_block(substeps) - 20
     plant.advance_2state(0, first * period_ns, 0.0)  # to the start (checked below from there)
     x = plant.state
     ref = list(x)
@@ -201,3 +203,47 @@ def test_a_moved_disturbance_origin_drops_the_period_cache() -> None:
     assert moved.advance_2state(period_ns, 2 * period_ns, 0.5)
     assert fresh.advance_2state(period_ns, 2 * period_ns, 0.5)
     assert moved.state == fresh.state
+
+
+def test_a_cache_load_stays_a_cell_block_whatever_the_substeps() -> None:
+    """A load of the per-period cache covers at most one cell block (or one period): a real-time
+    tick pays it between two deadlines, and substeps may be 10,000."""
+    for substeps in (1, 3, 10, 4096, 4097, 10_000):
+        n = periods_per_block(substeps)
+        assert n >= 1
+        assert n * substeps <= max(DISTURBANCE_BLOCK, substeps)
+    plant, _ = _pair(10, "sine", [0.0, 0.0])
+    assert plant.advance_2state(0, plant.period_ns, 0.0)
+    assert len(plant._d0) == periods_per_block(10)
+
+
+def test_cells_before_time_zero_are_integrated() -> None:
+    """Cells of negative time (block -1) are cells like any other: not skipped."""
+    plant, reference = _pair(10, "sine", [0.0, 1.0])
+    period_ns = plant.period_ns
+    plant.advance(-3 * period_ns // 10, 0, 1.0)  # three whole cells before t = 0
+    assert plant.state != (0.0, 1.0)
+    fresh, _ = _pair(10, "none", [0.0, 1.0])  # the sine starts at 0: nothing before it
+    fresh.advance(-3 * period_ns // 10, 0, 1.0)
+    assert plant.state == fresh.state
+    assert reference.state == (0.0, 1.0)
+
+
+def test_noise_whose_origin_moved_integrates_the_cells_before_it() -> None:
+    """An ODrive's disturbance starts at the first closed-loop entry (period 3 here): the noise's
+    cache block still holds cells before that origin, which are 0 (they raised IndexError)."""
+    from firmware_sim.odrive.core import StartAtEnable
+
+    cfg = _config(10, "mixed")
+    period_ns = cfg.plant.period_ns
+    dist = StartAtEnable(Disturbance(cfg.sim.disturbances, cfg.plant.period_s / 10))
+    fast = PlantModel(cfg.plant, 10, dist, [0.0, 0.0])  # type: ignore[arg-type]
+    assert fast.advance_2state(0, 3 * period_ns, 0.0)
+    dist.start(3 * period_ns)  # as OdriveCore does (no cache was filled while it was zero)
+    assert fast.advance_2state(3 * period_ns, 4 * period_ns, 0.1)
+    assert all(abs(v) < float("inf") for v in fast.state)
+    noise = Disturbance(cfg.sim.disturbances, cfg.plant.period_s / 10)
+    noise.origin_s = 0.5
+    values = noise.values_A(np.array([0.0, 0.25, 0.5, 0.75]))
+    assert values[0] == values[1] == 0.0
+    assert values[3] == noise.value_A(0.75)

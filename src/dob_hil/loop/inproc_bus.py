@@ -4,9 +4,10 @@ Lockstep runs the host and the embedded simulated drive in one thread, so a bus 
 frame from one end to the other. python-can's ``virtual`` interface deep-copies every message and
 takes a lock for it (about 30 us of a 70 us lockstep sample, mostly ``deepcopy``); this one appends
 the sender's :class:`can.Message` to the other end's queue. Frames stay python-can messages and go
-through the same codecs; both ends create a fresh message per send (``NativeDriveLink``,
-``firmware_sim``), so sharing the object is safe. Not thread-safe by design: real-time runs with the
-embedded drive use ``virtual``.
+through the same codecs. The receiver gets the sender's object: safe, since nothing in the project
+changes a message once sent (the senders build a fresh one per send, except frames that never
+change, such as the CiA 402 link's SYNC without counter, built once). Not thread-safe by design:
+real-time runs with the embedded drive use ``virtual``.
 
 :func:`bus_pair` returns the two ends; ``interface="virtual"`` in the session options selects
 python-can's bus instead (``RunOptions.bus_impl``).

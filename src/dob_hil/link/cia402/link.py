@@ -847,14 +847,17 @@ def _hex(value: int | None) -> str:
 def _object_dictionary(path: Path, node_id: int) -> canopen.ObjectDictionary:
     """The EDS/DCF parsed for ``node_id`` (``$NODEID`` resolved): parsed once per file version and
     node, since parsing takes several ms and a campaign or benchmark enables many sessions in one
-    process. The link only reads the dictionary (its SDO variables and PDO maps are the node's)."""
+    process. The link only reads the dictionary (its SDO variables and PDO maps are the node's).
+    A version is the file's device, inode, size, modification and change times: a copy that keeps
+    the modification time (``cp -p``) still gets a new change time, or a new inode."""
     st = path.stat()
-    return _parse_od(str(path), st.st_mtime_ns, st.st_size, node_id)
+    version = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    return _parse_od(str(path), version, node_id)
 
 
 @functools.lru_cache(maxsize=16)
-def _parse_od(path: str, mtime_ns: int, size: int, node_id: int) -> canopen.ObjectDictionary:
-    del mtime_ns, size  # part of the cache key: an edited file is parsed again
+def _parse_od(path: str, version: tuple[int, ...], node_id: int) -> canopen.ObjectDictionary:
+    del version  # part of the cache key: another version of the file is parsed again
     return canopen.import_od(path, node_id)
 
 
