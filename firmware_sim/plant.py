@@ -180,7 +180,7 @@ class PlantModel:
         in the update (overflow) propagates with the state unchanged."""
         p2 = self._p2
         P = self.period_ns
-        if p2 is None or self._m2 is None:
+        if p2 is None:  # not a single-input 2-state plant (no _m2 either)
             return False
         if t1_ns - t0_ns != P or t0_ns % P:  # not one whole period: whole cells, if on the grid
             S = self.substeps
@@ -206,8 +206,8 @@ class PlantModel:
         """Cells j0 .. j1-1 of the 2-state plant: cell by cell up to the first period boundary,
         whole periods composed, cell by cell after the last one (same arithmetic as
         :meth:`advance_2state`'s one period)."""
-        m2, p2 = self._m2, self._p2
-        assert m2 is not None and p2 is not None
+        p2 = self._p2
+        assert p2 is not None
         S = self.substeps
         first_k = -(-j0 // S)  # the first whole period
         last_k = j1 // S

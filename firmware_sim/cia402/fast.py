@@ -166,14 +166,7 @@ class FastPeriod:
         origin = plan.origin_ns
         path, plant = core.path, core.plant
         tau = now_ns - origin
-        times = path._times_ns
-        if times and times[0] <= tau:  # CurrentPath.settle
-            if len(times) == 1:  # apply_due for the one change the previous SYNC scheduled
-                path.held_A = path._currents_A.pop()
-                times.pop()
-            else:
-                path.apply_due(tau)
-        if not times:  # one current over the whole period (as _integrate_to would hold it)
+        if path.settle(tau):  # one current over the whole period (as _integrate_to would hold it)
             held = path.held_A
             if not plant.advance_2state(tau, tau + period_ns, held):
                 plant.advance(tau, tau + period_ns, held)

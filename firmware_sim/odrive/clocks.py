@@ -44,7 +44,6 @@ import can
 from dob_hil.config import Config
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import DLC, AxisState, CmdId, ODriveError
-from dob_hil.link.protocol import DriveState
 from firmware_sim.impairments import FeedbackImpairment
 from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
 from firmware_sim.threads import DriveThreads
@@ -56,7 +55,6 @@ _CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL
 _TORQUE = struct.Struct("<f4x")  # Set_Input_Torque's payload (codec.decode_set_input_torque)
 _ESTIMATES = struct.Struct("<ff")
 _F32_MAX = codec.F32_MAX
-_ENABLED = DriveState.ENABLED
 
 
 class OdriveLockstep:
@@ -248,12 +246,7 @@ class OdriveLockstep:
                 t_s = t * 1e-9
                 origin_s = d.origin_s
                 w_A = 0.0 if origin_s is None or t_s < origin_s else d.inner.value_A(t_s - origin_s)
-                # core.drive_state without the property: ENABLED in closed loop without an error
-                if core.axis_state is _CLOSED_LOOP and not core.axis_error:
-                    drive_state = _ENABLED
-                else:
-                    drive_state = core.drive_state
-                state = (t // core.period_ns, t, x, w_A, core.path.held_A, drive_state)
+                state = (t // core.period_ns, t, x, w_A, core.path.held_A, core.drive_state)
                 truth = tuple.__new__(GroundTruth, state)
         else:
             payload, truth = core.estimates()
