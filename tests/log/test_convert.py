@@ -153,3 +153,35 @@ def test_blocks_whose_schema_was_damaged_are_skipped_with_a_warning(tmp_path: Pa
         assert len(converted.samples) == 0
         assert converted.truth.tobytes() == whole.truth.tobytes()
         assert converted.frames.tobytes() == whole.frames.tobytes()
+
+
+def test_attachments_keep_their_media_types(tmp_path: Path) -> None:
+    """The conversion types attachments as the writer does (a .txt one was octet-stream)."""
+    from mcap.reader import make_reader
+
+    from dob_hil.log.bench import PAPER_LAYOUT, SyntheticRun
+    from dob_hil.log.writer import LogWriter
+
+    source = tmp_path / "source.mcap"
+    attachments = {"notes.txt": b"bench 3", "design.json": b"{}", "config.toml": b"", "raw.bin": b"\x00"}
+    with LogWriter(source, PAPER_LAYOUT, attachments=attachments) as log:
+        run = SyntheticRun(PAPER_LAYOUT)
+        for k in range(20):
+            run.period(log, k)
+    target = tmp_path / "target.mcap"
+    convert_layout(source, target, "blocks")
+
+    def media_types(path: Path) -> dict[str, str]:
+        with path.open("rb") as f:
+            return {a.name: a.media_type for a in make_reader(f).iter_attachments()}
+
+    assert (
+        media_types(target)
+        == media_types(source)
+        == {
+            "notes.txt": "text/plain",
+            "design.json": "application/json",
+            "config.toml": "application/toml",
+            "raw.bin": "application/octet-stream",
+        }
+    )

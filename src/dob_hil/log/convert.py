@@ -34,10 +34,9 @@ from dob_hil.log.schemas import (
     channel_specs,
     record_length,
 )
-from dob_hil.log.writer import DEFAULT_BLOCK_CHUNK_SIZE_BYTES, DEFAULT_CHUNK_SIZE_BYTES
+from dob_hil.log.writer import DEFAULT_BLOCK_CHUNK_SIZE_BYTES, DEFAULT_CHUNK_SIZE_BYTES, attachment_media_type
 
 RECORDS_PER_FEED: Final = 512  # records handed to the file at once (a chunk overshoots by at most these)
-_MEDIA_TYPES: Final = {".json": "application/json", ".toml": "application/toml"}
 
 
 @dataclass
@@ -99,8 +98,7 @@ def _convert(mm: mmap.mmap, source: Path, target: Path, message_layout: str) -> 
     try:
         fmap = reader.fmap
         for name, blob in fmap.attachments.items():
-            media = _MEDIA_TYPES.get(Path(name).suffix, "application/octet-stream")
-            file.add_attachment(0, 0, name, media, blob)
+            file.add_attachment(0, 0, name, attachment_media_type(name), blob)
         for group in reader._groups():
             table = reader._table(group)
             keep = np.isin(table.channels, list(ids))

@@ -102,6 +102,13 @@ DEFAULT_FLUSH_INTERVAL_NS: Final = 20_000_000
 DEFAULT_STALL_TIMEOUT_S: Final = 60.0
 PIPE_CAPACITY_BYTES: Final = 1 << 20
 _MEDIA_TYPES: Final = {".json": "application/json", ".toml": "application/toml", ".txt": "text/plain"}
+
+
+def attachment_media_type(name: str) -> str:
+    """The media type a log gives an attachment called ``name`` (by its suffix)."""
+    return _MEDIA_TYPES.get(Path(name).suffix, "application/octet-stream")
+
+
 _U32: Final = 0xFFFFFFFF
 _LOG_TIME = struct.Struct("<Q")
 _get_ident: Final = threading.get_ident
@@ -296,8 +303,12 @@ class LogWriter:
             )
         ]
         for name, blob in attachments.items():
-            media_type = _MEDIA_TYPES.get(Path(name).suffix, "application/octet-stream")
-            fields = {"name": name, "media_type": media_type, "create_time": now_ns, "log_time": now_ns}
+            fields = {
+                "name": name,
+                "media_type": attachment_media_type(name),
+                "create_time": now_ns,
+                "log_time": now_ns,
+            }
             records.append(pipe.control_record(pipe.OP_ATTACHMENT, fields, bytes(blob)))
         all_metadata: dict[str, Mapping[str, str]] = {
             "log_format": log_format_metadata(self.layout, self.message_layout)
