@@ -79,6 +79,15 @@ def block_counts(
     return np.where(good, counts, -1)
 
 
+def payload_block_count(payload: bytes, stride: int) -> int:
+    """:func:`block_counts`' rule on one block message's payload (as an MCAP reader gives it,
+    from its CDR header on): its record count, or -1 for a damaged block."""
+    if len(payload) < 4 + BLOCK_HEAD_BYTES or payload[:4] != CDR_HEADER:
+        return -1
+    (count,) = struct.unpack_from("<I", payload, 4)
+    return count if len(payload) == 4 + BLOCK_HEAD_BYTES + count * stride else -1
+
+
 def first_record_offsets(offsets: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
     """Where the first record of each block message (Message records at ``offsets``) starts."""
     return offsets + MESSAGE_RECORD_OVERHEAD + 4 + BLOCK_HEAD_BYTES
@@ -143,5 +152,6 @@ __all__ = [
     "expand_runs",
     "first_record_offsets",
     "gather_ints",
+    "payload_block_count",
     "to_blocks",
 ]

@@ -36,6 +36,7 @@ from mcap.writer import CompressionType, Writer
 
 from dob_hil import __version__
 from dob_hil.errors import LogReadError
+from dob_hil.log.blocks import payload_block_count
 from dob_hil.log.metadata import log_format_metadata
 from dob_hil.log.schemas import (
     BLOCK_HEAD_BYTES,
@@ -79,11 +80,10 @@ _STRIDES = {
 
 def _block_records(topic: str, payload: bytes) -> range:
     """Where each frame of a block message starts, after its CDR header (the block layout)."""
-    (count,) = struct.unpack_from("<I", payload, len(CDR_HEADER))
-    stride = _STRIDES[topic]  # the rule of dob_hil.log.blocks.block_counts, on one payload
-    size = len(CDR_HEADER) + BLOCK_HEAD_BYTES + count * stride
-    if payload[: len(CDR_HEADER)] != CDR_HEADER or len(payload) != size:
-        raise ValueError(f"{topic}: a block of {count} frames in {len(payload)} bytes")
+    stride = _STRIDES[topic]
+    count = payload_block_count(payload, stride)
+    if count < 0:
+        raise ValueError(f"{topic}: a damaged block of {len(payload)} bytes")
     return range(BLOCK_HEAD_BYTES, BLOCK_HEAD_BYTES + count * stride, stride)
 
 
