@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 import struct
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -37,14 +37,24 @@ _BLOCK_HEAD = struct.Struct("<BQHIQQ4sII")  # Message header, CDR header, count,
 _RECORD_BODY: Final = MESSAGE_RECORD_OVERHEAD + 4  # a record's body starts after its CDR header
 
 
+def gather(
+    buf: bytes | npt.NDArray[np.uint8], dtype: np.dtype[Any], offsets: npt.NDArray[np.int64]
+) -> npt.NDArray[Any]:
+    """Items of ``dtype`` starting at arbitrary byte ``offsets`` of ``buf`` (a one-byte-stride view)."""
+    count = len(buf) - dtype.itemsize + 1
+    if count <= 0:
+        return np.zeros(len(offsets), dtype=dtype)
+    if dtype.names is not None:  # structured: gather raw bytes, then view (much faster)
+        void = np.dtype((np.void, dtype.itemsize))
+        return np.ndarray((count,), void, buf, 0, (1,))[offsets].view(dtype)
+    return np.ndarray((count,), dtype, buf, 0, (1,))[offsets]
+
+
 def gather_ints(
     buf: bytes | npt.NDArray[np.uint8], dtype: str, offsets: npt.NDArray[np.int64]
 ) -> npt.NDArray[np.int64]:
-    """Integers of ``dtype`` at byte ``offsets`` of ``buf`` (a one-byte-stride view), as int64;
-    every offset must leave room for one item."""
-    item = np.dtype(dtype)
-    view = np.ndarray((len(buf) - item.itemsize + 1,), item, buf, 0, (1,))
-    return view[offsets].astype(np.int64)
+    """Integers of ``dtype`` at byte ``offsets`` of ``buf`` (:func:`gather`), as int64."""
+    return gather(buf, np.dtype(dtype), offsets).astype(np.int64)
 
 
 def expand_runs(
@@ -151,6 +161,7 @@ __all__ = [
     "block_record_length",
     "expand_runs",
     "first_record_offsets",
+    "gather",
     "gather_ints",
     "payload_block_count",
     "to_blocks",

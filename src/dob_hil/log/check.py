@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dob_hil.log.blocks import block_counts, expand_runs
-from dob_hil.log.reader import _gather, _Reader, map_log
+from dob_hil.log.blocks import block_counts, expand_runs, gather
+from dob_hil.log.reader import _Reader, map_log
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,7 +58,7 @@ def check_sequences(path: Path | str) -> dict[str, ChannelSequence]:
         blocks = reader.block_channels()
         for group in reader._groups():
             table = reader._table(group)
-            seqs = _gather(group.buf, np.dtype("<u4"), table.offsets + 11)
+            seqs = gather(group.buf, np.dtype("<u4"), table.offsets + 11)
             for cid in np.unique(table.channels).tolist():
                 mine = table.channels == cid
                 if cid in blocks:  # a block numbers its first record: the others follow it

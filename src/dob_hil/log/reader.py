@@ -34,6 +34,7 @@ import zstandard
 from dob_hil.errors import LogReadError
 from dob_hil.log import mcap_scan
 from dob_hil.log.blocks import block_counts, expand_runs, first_record_offsets
+from dob_hil.log.blocks import gather as _gather
 from dob_hil.log.mcap_scan import ChunkRef, FileMap
 from dob_hil.log.schemas import (
     BLOCK_SUFFIX,
@@ -738,17 +739,6 @@ class _Table:
     offsets: npt.NDArray[np.int64]
     channels: npt.NDArray[np.int64]
     lengths: npt.NDArray[np.int64]
-
-
-def _gather(buf: bytes, dtype: np.dtype[Any], offsets: npt.NDArray[np.int64]) -> npt.NDArray[Any]:
-    """Items of ``dtype`` starting at arbitrary byte ``offsets`` of ``buf`` (a one-byte-stride view)."""
-    count = len(buf) - dtype.itemsize + 1
-    if count <= 0:
-        return np.zeros(len(offsets), dtype=dtype)
-    if dtype.names is not None:  # structured: gather raw bytes, then view (much faster)
-        void = np.dtype((np.void, dtype.itemsize))
-        return np.ndarray((count,), void, buf, 0, (1,))[offsets].view(dtype)
-    return np.ndarray((count,), dtype, buf, 0, (1,))[offsets]
 
 
 def _fixed_specs(layout: LogLayout) -> list[Any]:
