@@ -30,6 +30,7 @@ import can
 from dob_hil.config import Config, load_config
 from dob_hil.errors import ConfigError, DobHilError
 from dob_hil.link.axes import axis_node_ids, check_square
+from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings
 from firmware_sim.axes import MultiAxisDrive, make_simulated_drive
 from firmware_sim.behaviour import VARIANTS
@@ -128,6 +129,13 @@ def _fail(status: int, message: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The drive process; BLAS on one thread (:mod:`dob_hil.loop.blas`: no spinning workers
+    beside the drive's threads)."""
+    with one_blas_thread():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = parse_args(argv)
     try:
         config = _with_overrides(load_config(args.config), args)

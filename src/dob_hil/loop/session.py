@@ -36,6 +36,7 @@ from dob_hil.link.bus import open_bus
 from dob_hil.link.busload import refuse_overload
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
 from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
+from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
 from dob_hil.loop.host_clocked import run_host_clocked_lockstep, run_host_clocked_realtime
@@ -199,7 +200,15 @@ def default_log_path(config: Config, dob_enabled: bool) -> Path:
 
 
 def run_session(config: Config, options: RunOptions) -> RunSummary:
-    """Run one session; raises DobHilError subclasses for bad input, after stopping safely."""
+    """Run one session; raises DobHilError subclasses for bad input, after stopping safely.
+
+    BLAS runs on one thread throughout (:mod:`dob_hil.loop.blas`): no spinning workers beside
+    the loop."""
+    with one_blas_thread():
+        return _run_session(config, options)
+
+
+def _run_session(config: Config, options: RunOptions) -> RunSummary:
     dob_enabled = config.run.dob_enabled if options.dob_enabled is None else options.dob_enabled
     design = build_design(config, dob_enabled=dob_enabled)
     profile = get_profile(config.drive.profile)

@@ -1,0 +1,58 @@
+"""BLAS runs on one thread while a session runs (dob_hil.loop.blas): no spinning workers beside
+the loop. Checked from inside the loop (the progress callback runs on the loop's thread)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from threadpoolctl import threadpool_info, threadpool_limits
+
+import firmware_sim.cli
+from dob_hil.config import Config
+from dob_hil.loop.blas import one_blas_thread
+from dob_hil.loop.session import RunOptions, run_session
+
+
+def _blas_threads() -> dict[str, int]:
+    return {lib["filepath"]: lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+
+def test_every_blas_is_limited_inside_and_restored_after(paper_step: Config, log_path: Path) -> None:
+    seen: list[dict[str, int]] = []
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        run_session(
+            paper_step,
+            RunOptions(log_path=log_path, duration_s=0.1, progress=lambda k, n: seen.append(_blas_threads())),
+        )
+        after = _blas_threads()
+    assert seen, "the loop reported no progress"
+    # numpy's and scipy's own OpenBLAS (the limit must reach the one scipy.linalg loads)
+    assert len(seen[0]) >= 2, seen[0]
+    assert all(n == 1 for threads in seen for n in threads.values()), seen
+    assert after == before
+
+
+def test_the_limit_covers_libraries_loaded_by_scipy_linalg() -> None:
+    with one_blas_thread():
+        import scipy.linalg  # noqa: F401  (already loaded by dob_hil.loop.blas)
+
+        threads = _blas_threads()
+    assert any("scipy" in path for path in threads), threads
+    assert set(threads.values()) == {1}
+
+
+def test_the_drive_process_runs_with_one_blas_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[dict[str, int]] = []
+
+    def fake_main(argv: object) -> int:
+        seen.append(_blas_threads())
+        return 0
+
+    monkeypatch.setattr(firmware_sim.cli, "_main", fake_main)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        assert firmware_sim.cli.main([]) == 0
+        assert _blas_threads() == before
+    assert seen and set(seen[0].values()) == {1}
