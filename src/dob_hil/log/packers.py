@@ -33,10 +33,10 @@ class _Batching(Protocol):
     _owner: int
     _batch: bytearray
     _batch_records: int
-    _batch_bytes: int
+    _next_bytes: int
     _foreign: Any
 
-    def _push(self) -> None: ...
+    def _batch_due(self) -> None: ...
 
 
 # the parameters of LogWriter.sample, in order, and the sample field each one fills
@@ -94,8 +94,8 @@ def _append(indent: str) -> str:
         "batch = _w._batch",
         "batch += record",
         "_w._batch_records += 1",
-        "if len(batch) >= _w._batch_bytes:",
-        "    _w._push()",
+        "if len(batch) >= _w._next_bytes:",
+        "    _w._batch_due()",
     )
     return "".join(f"{indent}{line}\n" for line in lines)
 

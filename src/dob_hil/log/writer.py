@@ -13,6 +13,16 @@ full the policy decides:
   ``log_overflow`` event as soon as there is room again; the summary's ``dropped_records`` says
   how many, and :func:`dob_hil.log.check.check_sequences` finds the gaps.
 
+Lockstep's per-period records from the bus and the simulated drive (each CAN frame, the ground
+truth) are staged rather than packed where they happen: the frame hook of
+:meth:`LogWriter.clocked_frame_hook` queues the frame with its time, and the sink of
+:meth:`LogWriter.truth_hook` is a queue's ``append``. The owner thread packs them into its batch
+in one pass each time the batch grew by ``STAGE_BYTES`` (about 90 samples) and at every hand-over,
+in their order per channel; packing a run of them costs about half what packing each one in the
+middle of a period costs (BENCHMARKS.md, "Issue 16 lockstep, sixth pass"). The same records, with
+the same sequence numbers and times, reach the file; only their interleaving across channels
+within a batch differs.
+
 Threads: the thread that made the writer owns it (the control thread). Records from any other
 thread (the embedded real-time drive's timer thread writes ground truth) go to a lock-free queue
 (``collections.deque``) that the owner moves into its batch at the next hand-over, so no batch is
@@ -100,6 +110,9 @@ DEFAULT_BATCH_BYTES: Final = 256 * 1024
 DEFAULT_FLUSH_BYTES: Final = 48 * 1024
 DEFAULT_FLUSH_INTERVAL_NS: Final = 20_000_000
 DEFAULT_STALL_TIMEOUT_S: Final = 60.0
+# staged records (lockstep frames and truth) are packed each time the batch grew by this much
+STAGE_BYTES: Final = 16 * 1024
+_NEVER: Final = 1 << 62  # _next_bytes while staged records are packed (no re-entry)
 PIPE_CAPACITY_BYTES: Final = 1 << 20
 _MEDIA_TYPES: Final = {".json": "application/json", ".toml": "application/toml", ".txt": "text/plain"}
 
@@ -126,6 +139,16 @@ class LogStats:
     pipe_writes: int
     written_records: dict[str, int] | None  # per kind, from the writer process at close
     backpressure_wait_ns: int = 0  # time the owner thread waited for the writer (backpressure)
+
+
+def message_flags(msg: can.Message) -> int:
+    """A python-can message's kind as ``CanFrame.flags``: extended id, error, remote, FD."""
+    return (
+        (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
+        | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
+        | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
+        | (CAN_FLAG_FD if msg.is_fd else 0)
+    )
 
 
 def _package_root() -> str:
@@ -214,6 +237,12 @@ class LogWriter:
         self._batch = bytearray()
         self._batch_records = 0
         self._batch_bytes = batch_bytes
+        # the batch length at which an owner-thread append calls _batch_due
+        self._next_bytes = min(STAGE_BYTES, batch_bytes)
+        self._staged_frames: collections.deque[tuple[int, can.Message, bool]] = collections.deque()
+        self._staged_frame_ns = 0  # the last staged frame's log time
+        self._staged_truth: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._truth_record: Callable[[tuple[Any, ...]], None] | None = None  # set by truth_hook
         self._flush_bytes = flush_bytes
         self._flush_interval_ns = flush_interval_ns
         self._last_push_ns = time.monotonic_ns()
@@ -426,8 +455,69 @@ class LogWriter:
             return
         self._batch += record
         self._batch_records += 1
+        if len(self._batch) >= self._next_bytes:
+            self._batch_due()
+
+    def _batch_due(self) -> None:
+        """The batch reached ``_next_bytes``: pack the staged records into it, and hand it over
+        once it holds ``batch_bytes``."""
+        self._pack_staged()
         if len(self._batch) >= self._batch_bytes:
             self._push()
+
+    def _pack_staged(self) -> None:
+        """Pack the staged frames and truth into the owner's batch, each channel in its order."""
+        self._next_bytes = _NEVER  # the packers append: no re-entry from here
+        try:
+            if self._staged_frames:
+                self._pack_staged_frames()
+            if self._staged_truth:
+                record = self._truth_record
+                assert record is not None  # only truth_hook's sink stages truth
+                staged = self._staged_truth
+                while staged:
+                    record(staged.popleft())
+        finally:
+            self._next_bytes = min(len(self._batch) + STAGE_BYTES, self._batch_bytes)
+
+    def _pack_staged_frames(self) -> None:
+        """The staged ``(time_ns, msg, is_rx)`` frames as records (a classic frame's inline; any
+        other, and one that does not pack, through :meth:`_frame_record`, which names it)."""
+        frames = self._staged_frames
+        pack, can_len, batch = self._pack_can, self._can_len, self._batch
+        n = self._seq_can
+        last_ns = self._staged_frame_ns
+        made = 0
+        try:
+            while frames:
+                t, msg, is_rx = frames.popleft()
+                # non-decreasing: a frame staged by another thread (a link's receive thread while
+                # the drive is configured) may have read the clock before the frame ahead of it
+                if t < last_ns:  # noqa: PLR1730 (a comparison, no call)
+                    t = last_ns
+                last_ns = t
+                data = msg.data
+                made += 1
+                if not (msg.is_extended_id or msg.is_error_frame or msg.is_fd or len(data) > CAN_DATA_BYTES):
+                    try:
+                        batch += pack(
+                            OP_MESSAGE, can_len, CH_CAN, n & _U32, t, t, CDR_HEADER_U32, t,
+                            msg.arbitration_id, CAN_RX if is_rx else CAN_TX, msg.dlc,
+                            CAN_FLAG_REMOTE if msg.is_remote_frame else 0, data,
+                        )  # fmt: skip
+                        n += 1
+                        continue
+                    except struct.error:
+                        pass
+                self._seq_can = n
+                batch += self._frame_record(
+                    t, msg.arbitration_id, is_rx, msg.dlc, data or b"", message_flags(msg)
+                )
+                n = self._seq_can
+        finally:
+            self._seq_can = n
+            self._staged_frame_ns = last_ns
+            self._batch_records += made
 
     def sample(
         self,
@@ -470,8 +560,8 @@ class LogWriter:
             batch = self._batch
             batch += record
             self._batch_records += 1
-            if len(batch) >= self._batch_bytes:
-                self._push()
+            if len(batch) >= self._next_bytes:
+                self._batch_due()
         else:
             self._foreign.append(record)
 
@@ -481,63 +571,34 @@ class LogWriter:
         The log time is ``msg.timestamp`` (seconds, float) in integer ns; give the frames a
         timestamp on the loop's clock if they are to line up with the samples.
         """
-        flags = (
-            (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
-            | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
-            | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
-            | (CAN_FLAG_FD if msg.is_fd else 0)
+        self.frame_raw(
+            round(msg.timestamp * 1e9),
+            msg.arbitration_id,
+            is_rx,
+            msg.dlc,
+            msg.data or b"",
+            message_flags(msg),
         )
-        self.frame_raw(round(msg.timestamp * 1e9), msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", flags)
 
     def clocked_frame_hook(self, clock_ns: Callable[[], int]) -> Callable[[can.Message, bool], None]:
-        """A link frame hook logging each frame at ``clock_ns()`` (lockstep: the simulated clock),
-        owner thread only. The same records as :meth:`frame_raw`, built in one call per frame
-        (the per-period path, an ODrive's RTR trigger included); anything but a classic data or
-        remote frame of up to 8 bytes, and a subclass that overrides :meth:`frame_raw`, goes
-        through :meth:`frame_raw`."""
-        frame_raw = self.frame_raw
-        pack = self._pack_can
-        can_len = self._can_len
+        """A link frame hook logging each frame at ``clock_ns()`` (lockstep: the simulated clock).
 
-        def general(msg: can.Message, is_rx: bool) -> None:
-            flags = (
-                (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
-                | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
-                | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
-                | (CAN_FLAG_FD if msg.is_fd else 0)
-            )
-            frame_raw(clock_ns(), msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", flags)
+        The hook stages the frame with its time (module docstring): the owner thread packs it with
+        the next run of staged records, as :meth:`frame_raw` would. The frame must not change once
+        sent, as nothing in the project changes it. A subclass that overrides :meth:`frame_raw` gets
+        a hook calling it at once."""
+        frame_raw = self.frame_raw
 
         if type(self).frame_raw is not LogWriter.frame_raw:
+
+            def general(msg: can.Message, is_rx: bool) -> None:
+                frame_raw(clock_ns(), msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", message_flags(msg))
+
             return general
+        stage = self._staged_frames.append
 
         def hook(msg: can.Message, is_rx: bool) -> None:
-            data = msg.data
-            if (
-                msg.is_extended_id
-                or msg.is_error_frame
-                or msg.is_fd
-                or len(data) > CAN_DATA_BYTES
-                or _get_ident() != self._owner
-            ):
-                general(msg, is_rx)
-                return
-            t = clock_ns()
-            n = self._seq_can
-            try:
-                record = pack(
-                    OP_MESSAGE, can_len, CH_CAN, n & _U32, t, t, CDR_HEADER_U32, t, msg.arbitration_id,
-                    CAN_RX if is_rx else CAN_TX, msg.dlc, CAN_FLAG_REMOTE if msg.is_remote_frame else 0, data,
-                )  # fmt: skip
-            except struct.error:
-                general(msg, is_rx)  # frame_raw names what did not pack
-                return
-            self._seq_can = n + 1
-            b = self._batch
-            b += record
-            self._batch_records += 1
-            if len(b) >= self._batch_bytes:
-                self._push()
+            stage((clock_ns(), msg, is_rx))
 
         return hook
 
@@ -551,6 +612,18 @@ class LogWriter:
         flags: int,
     ) -> None:
         """One raw CAN frame from its parts (``flags`` as in CanFrame.flags)."""
+        self._append(self._frame_record(timestamp_ns, arbitration_id, is_rx, dlc, data, flags))
+
+    def _frame_record(
+        self,
+        timestamp_ns: int,
+        arbitration_id: int,
+        is_rx: bool,
+        dlc: int,
+        data: bytes | bytearray,
+        flags: int,
+    ) -> bytes:
+        """The record of :meth:`frame_raw` (its channel's sequence number taken)."""
         direction = CAN_RX if is_rx else CAN_TX
         try:
             if len(data) <= CAN_DATA_BYTES:
@@ -572,7 +645,7 @@ class LogWriter:
         except struct.error as exc:
             values = (timestamp_ns, arbitration_id, direction, dlc, flags, data)
             raise self._diagnose("frame", can_fields(CAN_FD_DATA_BYTES), values, exc) from exc
-        self._append(record)  # (lockstep's per-period frames: clocked_frame_hook, appended inline)
+        return record
 
     def truth(
         self,
@@ -600,9 +673,10 @@ class LogWriter:
         """A ground-truth sink for a simulated drive: takes its truth tuple ``(period_index,
         time_ns, state, disturbance_A, applied_current_A, drive_state)`` (firmware_sim's
         ``GroundTruth``: one float each; a multi-axis drive's: a tuple per input) and logs it as
-        :meth:`truth` does, the single-axis record built in this one call (the per-period path).
-        A subclass that overrides :meth:`truth`, another thread, and anything that does not pack
-        go through :meth:`truth` (which names what did not pack)."""
+        :meth:`truth` does. The sink stages the tuple (a queue's ``append``: any thread; module
+        docstring); the owner thread packs it, the single-axis record in one generated call, a
+        multi-axis one and anything that does not pack through :meth:`truth` (which names what did
+        not pack). A subclass that overrides :meth:`truth` gets a sink calling it at once."""
         truth = self.truth
 
         def general(t: tuple[Any, ...]) -> None:
@@ -615,9 +689,10 @@ class LogWriter:
         if type(self).truth is not LogWriter.truth:
             return general
         # generated for the plant's state count (dob_hil.log.packers): no starred argument
-        return compile_truth_hook(
+        self._truth_record = compile_truth_hook(
             self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
         )
+        return self._staged_truth.append
 
     def event(
         self, time_ns: int, level: str, kind: str, message: str, data: Mapping[str, Any] | None = None
@@ -678,7 +753,7 @@ class LogWriter:
         the last hand-over. Never blocks, except under backpressure with a full backlog. Raises
         :class:`LogWriteError` once the writer process has failed.
         """
-        if (self._batch or self._foreign) and (
+        if (self._batch or self._foreign or self._staged_frames or self._staged_truth) and (
             force
             or len(self._batch) >= self._flush_bytes
             or time.monotonic_ns() - self._last_push_ns >= self._flush_interval_ns
@@ -699,11 +774,14 @@ class LogWriter:
     def _push(self) -> None:
         """Move the batch to the backlog (waiting, or dropping counted, if the backlog is full) and drain."""
         self._last_push_ns = time.monotonic_ns()
+        if self._staged_frames or self._staged_truth:
+            self._pack_staged()
         if self._foreign:
             self._take_foreign()
         batch, records = self._batch, self._batch_records
         self._batch = bytearray()
         self._batch_records = 0
+        self._next_bytes = min(STAGE_BYTES, self._batch_bytes)
         if not batch:
             return
         if self._failure is not None or self._closed:
@@ -813,7 +891,9 @@ class LogWriter:
         if not message:
             message = "the writer process ended unexpectedly"
         written = report.get("written") if report is not None else None
-        handed = self._enqueued_records + self._batch_records
+        handed = (
+            self._enqueued_records + self._batch_records + len(self._staged_frames) + len(self._staged_truth)
+        )
         if isinstance(written, dict):
             in_file = sum(int(v) for k, v in written.items() if str(k).endswith("_written"))
             self._written_records = {str(k): int(v) for k, v in written.items()}

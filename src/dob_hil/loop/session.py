@@ -35,7 +35,7 @@ from dob_hil.link.base import LinkEvent
 from dob_hil.link.bus import open_bus
 from dob_hil.link.busload import refuse_overload
 from dob_hil.log import LogLayout, LogWriter, run_metadata, versions_metadata
-from dob_hil.log.schemas import CAN_FLAG_ERROR, CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
+from dob_hil.log.writer import message_flags
 from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
@@ -156,13 +156,7 @@ def _frame_stamper(
     frame_raw = log.frame_raw
 
     def parts(msg: can.Message) -> tuple[int, int, bytes | bytearray, int]:
-        flags = (
-            (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
-            | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
-            | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
-            | (CAN_FLAG_FD if msg.is_fd else 0)
-        )
-        return msg.arbitration_id, msg.dlc, msg.data or b"", flags
+        return msg.arbitration_id, msg.dlc, msg.data or b"", message_flags(msg)
 
     if lockstep_drive is not None:
         # the drive's clock without its property chain, where the simulated drive offers it
