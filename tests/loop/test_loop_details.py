@@ -71,6 +71,10 @@ def test_in_process_bus_hands_over_the_same_message() -> None:
     host.send(can.Message(arbitration_id=0x100, is_extended_id=False))
     got = drive.recv(0.0)
     assert got is not None and got.arbitration_id == 0x100
+    drive.set_filters(None)  # every frame again
+    host.send(can.Message(arbitration_id=0x123, is_extended_id=False))
+    got = drive.recv(0.0)
+    assert got is not None and got.arbitration_id == 0x123
     host.shutdown()
     with pytest.raises(can.CanOperationError):
         host.send(msg)

@@ -100,23 +100,25 @@ def _append(indent: str) -> str:
     return "".join(f"{indent}{line}\n" for line in lines)
 
 
-def compile_truth_hook(
+def compile_truth_record(
     writer: _Batching,
     n_plant_states: int,
     pack: Callable[..., bytes],
     length: int,
     general: Callable[[tuple[Any, ...]], None],
 ) -> Callable[[tuple[Any, ...]], None]:
-    """``hook(truth)`` for a single-axis drive's ground truth ``(period_index, time_ns, state,
+    """``record(truth)`` for a single-axis drive's ground truth ``(period_index, time_ns, state,
     disturbance_A, applied_current_A, drive_state)`` with ``n_plant_states`` states: the truth
     record packed by ``pack`` (record length ``length``) and appended to ``writer``'s batch in this
-    one call, as ``LogWriter.truth`` would; ``general(truth)`` takes a multi-axis drive's truth
-    (a tuple per input), another thread's, and anything that does not unpack or pack."""
+    one call, as ``LogWriter.truth`` would. For the owner thread's packing of staged truth
+    (``LogWriter._pack_staged``, which takes care of the batch's length): no thread check and no
+    length check. ``general(truth)`` takes a multi-axis drive's truth (a tuple per input) and
+    anything that does not unpack or pack."""
     names = [f"state_{i}" for i in range(n_plant_states)]
     source = (
-        "def hook(t, _w=_w, _pack=_pack, _general=_general, _get_ident=_get_ident):\n"
+        "def record(t, _w=_w, _pack=_pack, _general=_general):\n"
         "    period_index, time_ns, state, disturbance_A, applied_A, drive_state = t\n"
-        "    if type(disturbance_A) is tuple or _get_ident() != _w._owner:\n"
+        "    if type(disturbance_A) is tuple:\n"
         "        return _general(t)\n"
         "    n = _w._seq_truth\n"
         "    try:\n"
@@ -126,9 +128,13 @@ def compile_truth_hook(
         + "disturbance_A, applied_A, period_index, drive_state)\n"
         "    except (ValueError, TypeError, _StructError):\n"
         "        return _general(t)\n"
-        "    _w._seq_truth = n + 1\n" + _append("    ") + "    return None\n"
+        "    _w._seq_truth = n + 1\n"
+        "    batch = _w._batch\n"
+        "    batch += record\n"
+        "    _w._batch_records += 1\n"
+        "    return None\n"
     )
-    return _define("hook", source, writer, pack, length, CH_TRUTH, general)
+    return _define("record", source, writer, pack, length, CH_TRUTH, general)
 
 
 def _define(

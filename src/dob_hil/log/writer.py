@@ -61,7 +61,7 @@ import dob_hil
 from dob_hil.errors import LogWriteError
 from dob_hil.log import pipe
 from dob_hil.log.metadata import log_format_metadata, versions_metadata
-from dob_hil.log.packers import compile_sample, compile_truth_hook
+from dob_hil.log.packers import compile_sample, compile_truth_record
 from dob_hil.log.schemas import (
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
@@ -123,6 +123,7 @@ def attachment_media_type(name: str) -> str:
 
 
 _U32: Final = 0xFFFFFFFF
+assert (CAN_RX, CAN_TX) == (0, 1)  # _pack_staged_frames packs a frame's direction as ``not is_rx``
 _LOG_TIME = struct.Struct("<Q")
 _get_ident: Final = threading.get_ident
 
@@ -485,9 +486,9 @@ class LogWriter:
         other, and one that does not pack, through :meth:`_frame_record`, which names it)."""
         frames = self._staged_frames
         pack, can_len, batch = self._pack_can, self._can_len, self._batch
-        n = self._seq_can
+        n = n0 = self._seq_can
+        fd0 = self._seq_can_fd
         last_ns = self._staged_frame_ns
-        made = 0
         try:
             while frames:
                 t, msg, is_rx = frames.popleft()
@@ -497,12 +498,11 @@ class LogWriter:
                     t = last_ns
                 last_ns = t
                 data = msg.data
-                made += 1
                 if not (msg.is_extended_id or msg.is_error_frame or msg.is_fd or len(data) > CAN_DATA_BYTES):
                     try:
                         batch += pack(
                             OP_MESSAGE, can_len, CH_CAN, n & _U32, t, t, CDR_HEADER_U32, t,
-                            msg.arbitration_id, CAN_RX if is_rx else CAN_TX, msg.dlc,
+                            msg.arbitration_id, not is_rx, msg.dlc,  # not is_rx: CAN_TX (1) or CAN_RX (0)
                             CAN_FLAG_REMOTE if msg.is_remote_frame else 0, data,
                         )  # fmt: skip
                         n += 1
@@ -517,7 +517,7 @@ class LogWriter:
         finally:
             self._seq_can = n
             self._staged_frame_ns = last_ns
-            self._batch_records += made
+            self._batch_records += n - n0 + self._seq_can_fd - fd0  # the records made, FD ones too
 
     def sample(
         self,
@@ -689,7 +689,7 @@ class LogWriter:
         if type(self).truth is not LogWriter.truth:
             return general
         # generated for the plant's state count (dob_hil.log.packers): no starred argument
-        self._truth_record = compile_truth_hook(
+        self._truth_record = compile_truth_record(
             self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
         )
         return self._staged_truth.append

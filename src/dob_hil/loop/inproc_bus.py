@@ -40,13 +40,26 @@ class InProcessBus(can.BusABC):
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The next frame, or None at once if none is queued (one thread: nothing can arrive while
-        this end waits, so a timeout would only waste time)."""
+        this end waits, so a timeout would only waste time). Without filters an end receives
+        through :meth:`_recv_any` (bound in :meth:`_apply_filters`)."""
         inbox = self._inbox
         while inbox:
             msg = inbox.popleft()
             if self._filters is None or self._matches_filters(msg):
                 return msg
         return None
+
+    def _recv_any(self, timeout: float | None = None) -> can.Message | None:
+        """:meth:`recv` of an end without filters: the next frame, or None."""
+        inbox = self._inbox
+        return inbox.popleft() if inbox else None
+
+    def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
+        # python-can's set_filters (also from BusABC.__init__) stores them in _filters first
+        if filters is None:
+            self.recv = self._recv_any  # type: ignore[method-assign]
+        else:
+            self.__dict__.pop("recv", None)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         inbox = self._inbox
