@@ -61,6 +61,7 @@ from dob_hil.log.schemas import (
     struct_body_format,
 )
 from dob_hil.log.wallclock import CAPTURE_MODE, wall_offset_ns
+from dob_hil.log.writer import message_flags
 
 _LAYOUT = LogLayout(1, 1, 1, 1)  # the sample/truth channels of a capture stay empty
 _CAN_BODY = struct.Struct("<" + struct_body_format(can_fields(CAN_DATA_BYTES)))
@@ -88,11 +89,9 @@ def _block_records(topic: str, payload: bytes) -> range:
 
 
 def _flags(msg: can.Message) -> int:
+    """The loop's flags of a frame, with a capture's bit-rate switch and error state indicator."""
     return (
-        (CAN_FLAG_EXTENDED if msg.is_extended_id else 0)
-        | (CAN_FLAG_ERROR if msg.is_error_frame else 0)
-        | (CAN_FLAG_REMOTE if msg.is_remote_frame else 0)
-        | (CAN_FLAG_FD if msg.is_fd else 0)
+        message_flags(msg)
         | (CAN_FLAG_BRS if msg.bitrate_switch else 0)
         | (CAN_FLAG_ESI if msg.error_state_indicator else 0)
     )
