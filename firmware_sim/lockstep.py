@@ -22,7 +22,7 @@ from __future__ import annotations
 import can
 
 from dob_hil.config import Config
-from dob_hil.link import base as _link_base  # noqa: F401  (its import checks can.Message's parameters)
+from dob_hil.link.message import data_frame
 from dob_hil.link.protocol import COMMAND_SEQ_MODULO, SEQ_MODULO, DriveState, FaultCode, FrameKind
 from firmware_sim.behaviour import REFERENCE, DriveBehaviour
 from firmware_sim.core import (
@@ -42,7 +42,6 @@ from firmware_sim.truth import GroundTruth
 _COMMAND = FrameResult.COMMAND
 _ENABLED = DriveState.ENABLED
 _new_tuple = tuple.__new__
-_Message = can.Message  # built positionally: dob_hil.link.base.MESSAGE_LEADING_PARAMS
 
 
 class LockstepClock:
@@ -213,7 +212,7 @@ class LockstepClock:
         else:
             # positional: timestamp, id, extended, remote, error, channel, dlc (from data), data
             # (dob_hil.link.base.MESSAGE_LEADING_PARAMS)
-            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
+            self.bus.send(data_frame(0.0, self._feedback_id, payload))
             stats.feedback_sent += 1
         sink = self.truth_sink
         if sink is not None and core.want_truth:
@@ -254,7 +253,7 @@ class LockstepClock:
         elif core.silent:
             core.stats.frames_suppressed += 1
         else:
-            self.bus.send(_Message(0.0, self._feedback_id, False, False, False, None, None, payload))
+            self.bus.send(data_frame(0.0, self._feedback_id, payload))
             core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None:
             self.truth_sink(truth)

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 import can
 
+from dob_hil.link.message import data_frame
 from dob_hil.link.protocol import DriveState
 from firmware_sim.cia402 import objects as ob
 from firmware_sim.cia402.pdo import Layout
@@ -55,7 +56,6 @@ _ENABLED = DriveState.ENABLED
 _CW_ENABLE_OPERATION = 0x000F  # the command bits of "enable operation" (power._command)
 _I32_MIN, _I32_MAX = -(2**31), 2**31 - 1
 _new_tuple = tuple.__new__
-_Message = can.Message
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,9 +231,8 @@ class FastPeriod:
             stats.tpdos_lost += 1
         else:
             try:
-                # positional: (timestamp, arbitration_id, is_extended_id, is_remote_frame,
-                # is_error_frame, channel, dlc, data), as canopen's Network.send_message builds it
-                self.bus.send(_Message(0.0, plan.tpdo_id, False, False, False, None, None, payload))
+                # the frame canopen's Network.send_message builds (dob_hil.link.message)
+                self.bus.send(data_frame(0.0, plan.tpdo_id, payload))
             except can.CanError:
                 core.network.send_failures += 1
             stats.tpdos_sent += 1

@@ -42,6 +42,7 @@ from typing import Any, cast
 import can
 
 from dob_hil.config import Config
+from dob_hil.link.message import data_frame
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import DLC, AxisState, CmdId, ODriveError
 from firmware_sim.impairments import FeedbackImpairment
@@ -261,7 +262,7 @@ class OdriveLockstep:
         elif core.silent:
             core.stats.frames_suppressed += 1
         else:  # _send, inline: stamped with the simulated time
-            self.bus.send(can.Message(t * 1e-9, core.estimates_id, False, False, False, None, None, payload))
+            self.bus.send(data_frame(t * 1e-9, core.estimates_id, payload))
             core.stats.feedback_sent += 1
         if truth is not None and self.truth_sink is not None and self._truth_at != t:
             self._truth_at = t

@@ -4,6 +4,7 @@ decoded by canopen's own PDO maps, the safe stop, a drive fault with its EMCY co
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import canopen
@@ -164,3 +165,29 @@ def test_cli_runs_the_scenario(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert rc == 0
     assert "completed" in capsys.readouterr().out
     assert len(read_log(log).samples) == 333
+
+
+def test_lockstep_configuration_runs_in_one_thread_and_repeats_frame_for_frame(
+    step_cia402: Config, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each SDO request is answered by servicing the drive in the caller's thread (no pump thread):
+    two runs log the same frames in the same order, each SDO answer right after its request."""
+    started: list[str] = []
+    real_start = threading.Thread.start
+
+    def spy_start(self: threading.Thread) -> None:
+        started.append(self.name)
+        real_start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", spy_start)
+    runs = [_run(step_cia402, tmp_path / f"run{i}.mcap", duration_s=0.003) for i in range(2)]
+    assert not [name for name in started if name.startswith("cia402-config")]
+    first, second = (r.frames for r in runs)
+    assert len(first) == len(second) > 50
+    for field in ("timestamp_ns", "arbitration_id", "direction", "dlc", "data"):
+        np.testing.assert_array_equal(first[field], second[field])
+    sdo_rx, sdo_tx = 0x600 + NODE, 0x580 + NODE
+    ids = list(first["arbitration_id"])
+    requests = [i for i, aid in enumerate(ids) if aid == sdo_rx]
+    assert len(requests) > 40
+    assert all(ids[i + 1] == sdo_tx for i in requests)  # the answer follows its request at once

@@ -129,9 +129,29 @@ def test_a_staged_frame_that_cannot_be_logged_is_named() -> None:
     hook = log.clocked_frame_hook(lambda: 0)
     hook(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False), True)
     hook(can.Message(arbitration_id=0x181, data=bytes(65), is_fd=True, is_extended_id=False), True)
+    hook(can.Message(arbitration_id=0x182, data=b"\x02", is_extended_id=False), True)
+    hook(can.Message(arbitration_id=0x183, data=b"\x03", is_extended_id=False), True)
     with pytest.raises(LogWriteError, match="65 data bytes"):
         log.flush(force=True)
     assert log._seq_can == 1  # the frame before it was packed
+    # the frames after it stay staged, in their order, and are packed by the next hand-over
+    assert [msg.arbitration_id for _, msg, _ in log._staged_frames] == [0x182, 0x183]
+    log._pack_staged()
+    assert log._seq_can == 3 and not log._staged_frames
+
+
+def test_a_staged_truth_that_cannot_be_logged_leaves_the_rest_staged() -> None:
+    log = LogWriter(os.devnull, LAYOUT)
+    sink = log.truth_hook()
+    sink(_truth(0))
+    sink((1, PERIOD_NS, (0.1, 0.2), 0.0, 0.25, "not a drive state"))
+    sink(_truth(2))
+    with pytest.raises(LogWriteError, match="truth"):
+        log.flush(force=True)
+    assert log._seq_truth == 1
+    assert [t[0] for t in log._staged_truth] == [2]
+    log._pack_staged()
+    assert log._seq_truth == 2 and not log._staged_truth
 
 
 def test_close_packs_what_is_staged(tmp_path: Path) -> None:

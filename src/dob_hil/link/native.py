@@ -71,6 +71,7 @@ from dob_hil.errors import ConfigError, DriveFault, ProtocolError
 from dob_hil.link import protocol
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
 from dob_hil.link.closing import ClosingLink
+from dob_hil.link.message import data_frame
 from dob_hil.link.protocol import (
     DLC,
     MAX_PADDED_LEN,
@@ -111,7 +112,6 @@ _ENABLED_SATURATED: Final = _ENABLED | _SATURATED
 _STATE_ENABLED: Final = DriveState.ENABLED
 _INF: Final = math.inf
 _new_tuple: Final = tuple.__new__
-_Message: Final = can.Message
 
 _FAULT_INFO: Final = {
     FaultCode.WATCHDOG: "periods without a valid command",
@@ -724,7 +724,7 @@ class NativeDriveLink(ClosingLink):
             self._check_open()
         # positional (dob_hil.link.base.MESSAGE_LEADING_PARAMS): timestamp, id, extended, remote,
         # error, channel, dlc (from data), data
-        msg = _Message(0.0, self._command_id, False, False, False, None, None, payload)
+        msg = data_frame(0.0, self._command_id, payload)
         try:
             self._bus.send(msg, self._send_timeout_s)
         except can.CanError as exc:

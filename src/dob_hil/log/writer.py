@@ -53,7 +53,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Final
+from typing import Any, Final, TypeVar
 
 import can
 
@@ -126,6 +126,7 @@ _U32: Final = 0xFFFFFFFF
 assert (CAN_RX, CAN_TX) == (0, 1)  # _pack_staged_frames packs a frame's direction as ``not is_rx``
 _LOG_TIME = struct.Struct("<Q")
 _get_ident: Final = threading.get_ident
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +141,21 @@ class LogStats:
     pipe_writes: int
     written_records: dict[str, int] | None  # per kind, from the writer process at close
     backpressure_wait_ns: int = 0  # time the owner thread waited for the writer (backpressure)
+
+
+def _take(staged: list[_T]) -> list[_T]:
+    """The items staged so far, removed from ``staged``: the owner thread takes a prefix while other
+    threads may append (each slice operation is atomic under the GIL; what is appended in between
+    stays staged)."""
+    n = len(staged)
+    taken = staged[:n]
+    del staged[:n]
+    return taken
+
+
+def _index_of(items: list[Any], item: Any) -> int:
+    """The position of ``item`` itself (not an equal one) in ``items``."""
+    return next(i for i, x in enumerate(items) if x is item)
 
 
 def message_flags(msg: can.Message) -> int:
@@ -240,9 +256,10 @@ class LogWriter:
         self._batch_bytes = batch_bytes
         # the batch length at which an owner-thread append calls _batch_due
         self._next_bytes = min(STAGE_BYTES, batch_bytes)
-        self._staged_frames: collections.deque[tuple[int, can.Message, bool]] = collections.deque()
+        # staged records (lists: other threads only append, the owner takes a prefix, see _take)
+        self._staged_frames: list[tuple[int, can.Message, bool]] = []
         self._staged_frame_ns = 0  # the last staged frame's log time
-        self._staged_truth: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._staged_truth: list[tuple[Any, ...]] = []
         self._truth_record: Callable[[tuple[Any, ...]], None] | None = None  # set by truth_hook
         self._flush_bytes = flush_bytes
         self._flush_interval_ns = flush_interval_ns
@@ -475,23 +492,30 @@ class LogWriter:
             if self._staged_truth:
                 record = self._truth_record
                 assert record is not None  # only truth_hook's sink stages truth
-                staged = self._staged_truth
-                while staged:
-                    record(staged.popleft())
+                staged = _take(self._staged_truth)
+                truth = None
+                try:
+                    for truth in staged:
+                        record(truth)
+                except BaseException:
+                    self._staged_truth[:0] = staged[_index_of(staged, truth) + 1 :]  # the rest stays staged
+                    raise
         finally:
             self._next_bytes = min(len(self._batch) + STAGE_BYTES, self._batch_bytes)
 
     def _pack_staged_frames(self) -> None:
         """The staged ``(time_ns, msg, is_rx)`` frames as records (a classic frame's inline; any
-        other, and one that does not pack, through :meth:`_frame_record`, which names it)."""
-        frames = self._staged_frames
+        other, and one that does not pack, through :meth:`_frame_record`, which names it: the
+        frames after one that raises stay staged)."""
+        frames = _take(self._staged_frames)
         pack, can_len, batch = self._pack_can, self._can_len, self._batch
         n = n0 = self._seq_can
         fd0 = self._seq_can_fd
         last_ns = self._staged_frame_ns
+        item = None
         try:
-            while frames:
-                t, msg, is_rx = frames.popleft()
+            for item in frames:
+                t, msg, is_rx = item
                 # non-decreasing: a frame staged by another thread (a link's receive thread while
                 # the drive is configured) may have read the clock before the frame ahead of it
                 if t < last_ns:  # noqa: PLR1730 (a comparison, no call)
@@ -514,6 +538,10 @@ class LogWriter:
                     t, msg.arbitration_id, is_rx, msg.dlc, data or b"", message_flags(msg)
                 )
                 n = self._seq_can
+        except BaseException:
+            # the frame that raised is dropped (named by the error), the ones after it stay staged
+            self._staged_frames[:0] = frames[_index_of(frames, item) + 1 :]
+            raise
         finally:
             self._seq_can = n
             self._staged_frame_ns = last_ns

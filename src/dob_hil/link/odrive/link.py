@@ -60,6 +60,7 @@ from dob_hil.config import DriveConfig
 from dob_hil.errors import ConfigError, DriveFault, ProtocolError
 from dob_hil.link.base import EventHook, Feedback, FrameHook, LinkEvent, LinkEventKind
 from dob_hil.link.closing import ClosingLink
+from dob_hil.link.message import data_frame
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import AxisState, CmdId, ControlMode, InputMode
 from dob_hil.link.odrive.options import OdriveOptions
@@ -325,7 +326,7 @@ class OdriveDriveLink(ClosingLink):
         if codes is self._q_codes:  # what quantize just returned: finite, clamped at the limit
             if self._closed:
                 self._check_open()
-            msg = can.Message(0.0, self._torque_id, False, False, False, None, codec.DLC, self._q_payload)
+            msg = data_frame(0.0, self._torque_id, self._q_payload)  # 8 bytes: DLC
             self._send_message(msg, "Set_Input_Torque")
             return self._clock_ns()
         if len(codes) != N_AXES:
