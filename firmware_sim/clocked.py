@@ -13,7 +13,7 @@ import contextlib
 import functools
 from collections.abc import Callable
 from types import TracebackType
-from typing import TYPE_CHECKING, Generic, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar
 
 if TYPE_CHECKING:
     from dob_hil.link.protocol import DriveState
@@ -83,12 +83,19 @@ class ClockedDrive(Generic[L, R]):
 
     def lockstep_clock_ns(self) -> Callable[[], int]:
         """Lockstep: a cheap reader of the simulated time (:attr:`time_ns` without the property
-        chain; the session's frame stamper calls it for every frame). A clock without a ``core``
-        holding ``time_ns`` gets a reader of the drive's own ``time_ns``."""
-        core = getattr(self._need_lockstep("lockstep_clock_ns"), "core", None)
-        if core is None or not hasattr(core, "time_ns"):
+        chain). A clock without a ``core`` holding ``time_ns`` gets a reader of the drive's own
+        ``time_ns``."""
+        core = self.lockstep_time_source()
+        if core is None:
             return lambda: int(getattr(self, "time_ns"))  # noqa: B009 (the subclass's property)
         return functools.partial(getattr, core, "time_ns")
+
+    def lockstep_time_source(self) -> Any:
+        """Lockstep: the object whose ``time_ns`` attribute is the simulated time (the clock's
+        ``core``; the session's frame stamper reads it for every frame), or None where the drive
+        has no such object (then :meth:`lockstep_clock_ns`)."""
+        core = getattr(self._need_lockstep("lockstep_time_source"), "core", None)
+        return core if core is not None and hasattr(core, "time_ns") else None
 
     # --- lockstep ------------------------------------------------------------------------------
     def service(self) -> int:

@@ -16,7 +16,7 @@ from dob_hil.errors import DobHilError
 from dob_hil.log import LogLayout, LogWriteError, LogWriter, read_log
 from dob_hil.log.bench import SyntheticRun
 from dob_hil.log.check import assert_complete, check_sequences
-from dob_hil.log.schemas import CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE
+from dob_hil.log.schemas import CAN_FLAG_EXTENDED, CAN_FLAG_FD, CAN_FLAG_REMOTE, CAN_RX, CAN_TX
 
 LAYOUT = LogLayout(2, 1, 1, 2)
 GOOD = dict(
@@ -302,3 +302,24 @@ def test_clocked_frame_hook_writes_what_frame_raw_writes(tmp_path: Path) -> None
         assert np.array_equal(a.frames[name], b.frames[name]), name
     for name in a.fd_frames.dtype.names or ():
         assert np.array_equal(a.fd_frames[name], b.fd_frames[name]), name
+
+
+def test_source_clocked_frame_hook_logs_each_frame_at_the_sources_time_then(tmp_path: Path) -> None:
+    """The lockstep stamper's hook reads ``source.time_ns`` when the frame passes, not when packed."""
+
+    class Source:
+        time_ns = 0
+
+    source = Source()
+    msgs = [can.Message(arbitration_id=0x80 + i, data=bytes([i]), is_extended_id=False) for i in range(5)]
+    path = tmp_path / "source.mcap"
+    with LogWriter(path, LAYOUT) as log:
+        hook = log.source_clocked_frame_hook(source)
+        for i, msg in enumerate(msgs):
+            source.time_ns = 1000 * i
+            hook(msg, i % 2 == 0)
+        source.time_ns = 10**9  # packed later: the times taken when staged count
+    frames = read_log(path).frames
+    assert list(frames["timestamp_ns"]) == [0, 1000, 2000, 3000, 4000]
+    assert list(frames["arbitration_id"]) == [0x80, 0x81, 0x82, 0x83, 0x84]
+    assert list(frames["direction"]) == [CAN_RX, CAN_TX, CAN_RX, CAN_TX, CAN_RX]

@@ -53,7 +53,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Final, TypeVar
+from typing import Any, Final, Protocol, TypeVar
 
 import can
 
@@ -141,6 +141,13 @@ class LogStats:
     pipe_writes: int
     written_records: dict[str, int] | None  # per kind, from the writer process at close
     backpressure_wait_ns: int = 0  # time the owner thread waited for the writer (backpressure)
+
+
+class TimeSource(Protocol):
+    """Anything with the current time as an attribute (a simulated drive's core)."""
+
+    @property
+    def time_ns(self) -> int: ...
 
 
 def _take(staged: list[_T]) -> list[_T]:
@@ -627,6 +634,18 @@ class LogWriter:
 
         def hook(msg: can.Message, is_rx: bool) -> None:
             stage((clock_ns(), msg, is_rx))
+
+        return hook
+
+    def source_clocked_frame_hook(self, source: TimeSource) -> Callable[[can.Message, bool], None]:
+        """:meth:`clocked_frame_hook` with ``source.time_ns`` as the clock (lockstep: the simulated
+        drive's time, read as an attribute: a third of the hook's cost with a callable clock)."""
+        if type(self).frame_raw is not LogWriter.frame_raw:
+            return self.clocked_frame_hook(lambda: source.time_ns)
+        stage = self._staged_frames.append
+
+        def hook(msg: can.Message, is_rx: bool) -> None:
+            stage((source.time_ns, msg, is_rx))
 
         return hook
 

@@ -76,6 +76,8 @@ _HEARTBEAT: Final = struct.Struct("<IBBBx")
 _TORQUE: Final = struct.Struct("<f4x")
 _BITS: Final = struct.Struct("<i")
 _F32: Final = struct.Struct("<f")
+_F32_AND_BITS: Final = struct.Struct("<fi")  # 4 bytes twice: as a float32, as an int32
+_DLC: Final = codec.DLC
 _CLOSED_LOOP: Final = int(AxisState.CLOSED_LOOP_CONTROL)
 _PAD4: Final = bytes(4)  # Set_Input_Torque's bytes 4..7
 FAST_PATH = True  # False: every frame and command through the general path (the fast path's tests)
@@ -217,7 +219,7 @@ class OdriveDriveLink(ClosingLink):
         self.stats = OdriveLinkStats()
         self._seq: int | None = None
         self._last_stamp_ns = 0
-        self._last_data = b""
+        self._last_data: bytes | bytearray = b""
         self._lockstep = False  # set by enable_lockstep: one estimate per sample, no wall clock
         self._rtr_mode = options.encoder_msg_rate_ms == 0  # host-clocked: estimates only on RTR
         self._triggers = 0  # RTR triggers sent
@@ -256,13 +258,14 @@ class OdriveDriveLink(ClosingLink):
             self._check_open()
         recv = self._bus.recv
         if timeout_ns <= 0:
-            for _ in range(MAX_READS_AFTER_DEADLINE):
-                msg = recv(0.0)
-                if msg is None:
-                    break
+            msg = recv(0.0)
+            reads = 1
+            while msg is not None:
                 self._consume(msg)
-                if self._pending is not None:
+                if self._pending is not None or reads >= MAX_READS_AFTER_DEADLINE:
                     break
+                msg = recv(0.0)
+                reads += 1
             fb, self._pending = self._pending, None  # _take, inline (the per-period path)
             return fb
         deadline_ns = time.monotonic_ns() + timeout_ns
@@ -300,9 +303,9 @@ class OdriveDriveLink(ClosingLink):
                 except OverflowError:  # beyond float32 (an absurd limit): the general path
                     raw = b""
                 if raw:
-                    torque: float = _F32.unpack(raw)[0]
+                    torque, code = _F32_AND_BITS.unpack(raw * 2)  # the float32 and its bit pattern
                     if abs(torque) / kt <= limit_A:  # else one ulp towards zero: the general path
-                        codes = (_BITS.unpack(raw)[0],)
+                        codes = (code,)
                         self._q_codes, self._q_payload = codes, raw + _PAD4
                         return codes, (torque / kt,), False
         result = self._quantizer.quantize(current_A)
@@ -560,7 +563,7 @@ class OdriveDriveLink(ClosingLink):
         formed, after the first; False (nothing done) for anything else, which takes the general path."""
         data = msg.data
         last_seq = self._seq
-        if self._answered or last_seq is None or len(data) != codec.DLC:
+        if self._answered or last_seq is None or len(data) != _DLC:
             return False
         pos_turns, vel = _ESTIMATES.unpack(data)
         if not (-math.inf < pos_turns < math.inf and -math.inf < vel < math.inf):
@@ -570,8 +573,7 @@ class OdriveDriveLink(ClosingLink):
             return False
         stamp_ns = round(msg.timestamp * 1e9)
         gap_ns = stamp_ns - self._last_stamp_ns
-        raw = bytes(data)
-        if gap_ns < 0 or (gap_ns == 0 and raw == self._last_data):
+        if gap_ns < 0 or (gap_ns == 0 and data == self._last_data):
             return False  # stale: the general path names it
         self._answered = True
         seq = (self._triggers - 1) % SEQ_MODULO
@@ -579,7 +581,7 @@ class OdriveDriveLink(ClosingLink):
         if skipped > 1:
             self.stats.missed_feedback += skipped - 1
         self._last_stamp_ns = stamp_ns
-        self._last_data = raw
+        self._last_data = data  # the frame's own bytes: nothing changes a frame once received
         self._seq = seq
         self.stats.feedback += 1
         count_t = (counts,)
