@@ -93,6 +93,10 @@ class Disturbance:
                 raise ValueError(f"unknown disturbance kind {e.kind!r}")
         self.is_zero = not (self._sines or self._steps or self._noises)
         self.origin_s: float | None = 0.0  # t = 0 of every entry, in the caller's seconds
+        if len(self._sines) == 1 and not (self._steps or self._noises):
+            # the common case (one per-period call of a lockstep drive's ground truth)
+            self._sine = self._sines[0]
+            self.value_A = self._value_one_sine  # type: ignore[method-assign]
 
     def value_A(self, t_s: float) -> float:
         """The disturbance current at time ``t_s`` (seconds of the caller's clock; see origin_s)."""
@@ -111,6 +115,19 @@ class Disturbance:
         for n in self._noises:
             v += n.value_A(t_s)
         return v
+
+    def _value_one_sine(self, t_s: float) -> float:
+        """:meth:`value_A` of a disturbance that is one sine: the same arithmetic, bit for bit
+        (``0.0 +`` as the sum's start: a sine of -0.0 gives 0.0, as there)."""
+        origin = self.origin_s
+        if origin is None:
+            return 0.0
+        if origin:
+            t_s -= origin
+        a, w, p, start = self._sine
+        if t_s >= start:
+            return 0.0 + a * math.sin(w * t_s + p)
+        return 0.0
 
     def values_A(self, t_s: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """:meth:`value_A` at every element of ``t_s`` (vectorised; equal to within rounding)."""

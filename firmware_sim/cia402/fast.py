@@ -47,6 +47,7 @@ from firmware_sim.truth import GroundTruth
 
 if TYPE_CHECKING:
     from firmware_sim.cia402.core import Cia402Core, TruthSink
+    from firmware_sim.plant import PlantModel
 
 RPDO_OBJECTS = ((ob.CONTROLWORD, 0), (ob.TARGET_TORQUE, 0))
 TPDO_OBJECTS = ((ob.STATUSWORD, 0), (ob.POSITION_ACTUAL, 0))
@@ -77,6 +78,7 @@ class FastPlan:
     mode_cst: bool
     max_torque: int
     rated_current_mA: int
+    position_row: tuple[float, float] | None  # C[0] of a 2-state plant (plant.position, inline)
 
 
 def fast_plan(core: Cia402Core) -> FastPlan | None:
@@ -120,7 +122,16 @@ def fast_plan(core: Cia402Core) -> FastPlan | None:
         mode_cst=core.mode == ob.MODE_CST,
         max_torque=core.max_torque,
         rated_current_mA=core.rated_current_mA,
+        position_row=_position_row(core.plant),
     )
+
+
+def _position_row(plant: PlantModel) -> tuple[float, float] | None:
+    """The output row of a 2-state plant, for :meth:`FastPeriod.sync`'s inline ``plant.position()``."""
+    if plant.n_states != 2:
+        return None
+    c0, c1 = plant._c
+    return c0, c1
 
 
 class FastPeriod:
@@ -181,8 +192,14 @@ class FastPeriod:
             core._missed_rpdo = 0  # an RPDO came in this period
         held_A = path.held_A
         # --- sample (Cia402Core._sample) ---
+        row = plan.position_row
+        if row is not None:
+            x = plant._x
+            position = row[0] * x[0] + row[1] * x[1]  # plant.position() of a 2-state plant
+        else:
+            position = plant.position()
         try:
-            counts = core.encoder.read(plant.position())
+            counts = core.encoder.read(position)
         except ValueError:  # not finite or beyond any count, an encoder fault: the general tail
             core._rpdo_since_sync = True
             core._pending.update(zip(RPDO_OBJECTS, (controlword, torque), strict=True))

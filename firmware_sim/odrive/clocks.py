@@ -45,6 +45,7 @@ from dob_hil.config import Config
 from dob_hil.link.message import data_frame
 from dob_hil.link.odrive import codec
 from dob_hil.link.odrive.codec import DLC, AxisState, CmdId, ODriveError
+from dob_hil.link.protocol import DriveState
 from firmware_sim.impairments import FeedbackImpairment
 from firmware_sim.odrive.core import OdriveCore, OdriveStats, TruthSink
 from firmware_sim.threads import DriveThreads
@@ -53,6 +54,7 @@ from firmware_sim.truth import GroundTruth
 RECV_POLL_S = 0.05
 FAST_PATH = True  # False: every frame and period through the general path (the fast path's tests)
 _CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL
+_FAULT, _ENABLED, _DISABLED = DriveState.FAULT, DriveState.ENABLED, DriveState.DISABLED
 _TORQUE = struct.Struct("<f4x")  # Set_Input_Torque's payload (codec.decode_set_input_torque)
 _ESTIMATES = struct.Struct("<ff")
 _F32_MAX = codec.F32_MAX
@@ -247,7 +249,12 @@ class OdriveLockstep:
                 t_s = t * 1e-9
                 origin_s = d.origin_s
                 w_A = 0.0 if origin_s is None or t_s < origin_s else d.inner.value_A(t_s - origin_s)
-                state = (t // core.period_ns, t, x, w_A, core.path.held_A, core.drive_state)
+                # core.drive_state, inline
+                if core.axis_error:
+                    drive_state = _FAULT
+                else:
+                    drive_state = _ENABLED if core.axis_state is _CLOSED_LOOP else _DISABLED
+                state = (t // core.period_ns, t, x, w_A, core.path.held_A, drive_state)
                 truth = tuple.__new__(GroundTruth, state)
         else:
             payload, truth = core.estimates()

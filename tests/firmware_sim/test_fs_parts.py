@@ -244,3 +244,27 @@ def test_impairments_are_seeded_and_keep_frame_order() -> None:
     delays = [d - k * 300_000 for k, d in enumerate(dues)]
     assert min(delays) >= 100_000 and max(delays) <= 350_000
     assert FeedbackImpairment(0.0, 0.0, 0.0, 0).lost() is False
+
+
+@given(
+    st.floats(-2.0, 2.0),
+    st.floats(0.0, 50.0),
+    st.floats(-4.0, 4.0),
+    st.floats(0.0, 0.5),
+    st.one_of(st.none(), st.floats(-1.0, 1.0)),
+    st.lists(st.floats(-1.0, 3.0), min_size=1, max_size=20),
+)
+def test_one_sine_value_is_the_general_sum_bit_for_bit(
+    amplitude: float, hz: float, phase: float, start: float, origin: float | None, times: list[float]
+) -> None:
+    """A disturbance of one sine takes a shorter value_A (the per-period path): the same bits."""
+    one = Disturbance([sine(amplitude, hz, phase=phase, start=start)], 30e-6)
+    if amplitude == 0.0:
+        assert one.is_zero
+        return
+    assert one.value_A == one._value_one_sine
+    general = Disturbance.value_A.__get__(one)  # the class's sum over every entry
+    one.origin_s = origin
+    for t in [*times, start, -0.0, math.nextafter(start, -math.inf)]:
+        fast, slow = one.value_A(t), general(t)
+        assert (fast, math.copysign(1.0, fast)) == (slow, math.copysign(1.0, slow))  # -0.0 too
