@@ -3,6 +3,7 @@ the loop. Checked from inside the loop (the progress callback runs on the loop's
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 import firmware_sim.cli
 from dob_hil.config import Config
+from dob_hil.log import LogLayout, LogWriter
 from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.session import RunOptions, run_session
 
@@ -56,3 +58,18 @@ def test_the_drive_process_runs_with_one_blas_thread(monkeypatch: pytest.MonkeyP
         assert firmware_sim.cli.main([]) == 0
         assert _blas_threads() == before
     assert seen and set(seen[0].values()) == {1}
+
+
+def test_the_log_writer_process_runs_one_thread(tmp_path: Path) -> None:
+    """The writer process imports numpy: without the limit its OpenBLAS starts a worker per CPU,
+    which spin beside the control loop as a run starts. Once it is ready it runs one thread."""
+    log = LogWriter(tmp_path / "one.mcap", LogLayout(2, 1, 1, 2))
+    try:
+        assert log._proc is not None
+        pid = log._proc.pid
+        assert "numpy" in Path(f"/proc/{pid}/maps").read_text()  # its imports are done
+        assert len(os.listdir(f"/proc/{pid}/task")) == 1
+        environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        assert b"OPENBLAS_NUM_THREADS=1" in environ
+    finally:
+        log.close({"exit_reason": "done"})

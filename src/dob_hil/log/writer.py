@@ -123,6 +123,10 @@ def attachment_media_type(name: str) -> str:
 
 
 _U32: Final = 0xFFFFFFFF
+# The writer process does no linear algebra: one BLAS thread. numpy's OpenBLAS otherwise starts a
+# worker per CPU at import, and they spin for tens of milliseconds, taking a CPU from the control
+# loop just as a run starts (on a 2-CPU machine 5-20 ms of a lockstep run's first 4,000 samples).
+WRITER_THREAD_ENV: Final = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 assert (CAN_RX, CAN_TX) == (0, 1)  # _pack_staged_frames packs a frame's direction as ``not is_rx``
 _LOG_TIME = struct.Struct("<Q")
 _get_ident: Final = threading.get_ident
@@ -297,6 +301,7 @@ class LogWriter:
 
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (_package_root(), env.get("PYTHONPATH", "")) if p)
+        env.update(WRITER_THREAD_ENV)
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "dob_hil.log.writer_process"],
             stdin=subprocess.PIPE,
