@@ -109,7 +109,7 @@ def test_truth_hook_writes_what_truth_writes(n_plant_states: int) -> None:
     rng = random.Random(n_plant_states)
     with LogWriter(os.devnull, layout) as fast, LogWriter(os.devnull, layout) as general:
         sink = fast.truth_hook()  # stages the tuple; the generated record packs it
-        assert "state_0" in fast._truth_record.source  # type: ignore[union-attr]
+        assert "state_0" in fast._truth_records.source  # type: ignore[union-attr]
         for k in range(100):
             state = tuple(rng.uniform(-5.0, 5.0) for _ in range(n_plant_states))
             d, a = rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)

@@ -38,6 +38,8 @@ class _Batching(Protocol):
 
     def _batch_due(self) -> None: ...
 
+    def _restage_truth(self, rest: list[tuple[Any, ...]]) -> None: ...
+
 
 # the parameters of LogWriter.sample, in order, and the sample field each one fills
 SAMPLE_PARAMS: tuple[str, ...] = (
@@ -106,35 +108,44 @@ def compile_truth_record(
     pack: Callable[..., bytes],
     length: int,
     general: Callable[[tuple[Any, ...]], None],
-) -> Callable[[tuple[Any, ...]], None]:
-    """``record(truth)`` for a single-axis drive's ground truth ``(period_index, time_ns, state,
-    disturbance_A, applied_current_A, drive_state)`` with ``n_plant_states`` states: the truth
-    record packed by ``pack`` (record length ``length``) and appended to ``writer``'s batch in this
-    one call, as ``LogWriter.truth`` would. For the owner thread's packing of staged truth
-    (``LogWriter._pack_staged``, which takes care of the batch's length): no thread check and no
-    length check. ``general(truth)`` takes a multi-axis drive's truth (a tuple per input) and
-    anything that does not unpack or pack."""
+) -> Callable[[list[tuple[Any, ...]]], None]:
+    """``records(staged)`` for a run of a single-axis drive's ground truth tuples ``(period_index,
+    time_ns, state, disturbance_A, applied_current_A, drive_state)`` with ``n_plant_states``
+    states: each truth record packed by ``pack`` (record length ``length``) and appended to
+    ``writer``'s batch in one loop, as ``LogWriter.truth`` would. For the owner thread's packing
+    of staged truth (``LogWriter._pack_staged``, which takes care of the batch's length): no
+    thread check and no length check. ``general(truth)`` takes a multi-axis drive's truth (a
+    tuple per input) and anything that does not unpack or pack; should it raise, the truths after
+    the one that raised are handed to ``writer._restage_truth`` before the error propagates."""
     names = [f"state_{i}" for i in range(n_plant_states)]
     source = (
-        "def record(t, _w=_w, _pack=_pack, _general=_general):\n"
-        "    period_index, time_ns, state, disturbance_A, applied_A, drive_state = t\n"
-        "    if type(disturbance_A) is tuple:\n"
-        "        return _general(t)\n"
-        "    n = _w._seq_truth\n"
-        "    try:\n"
-        f"        {''.join(f'{v}, ' for v in names)}= state\n"
-        "        record = _pack(_OP, _LEN, _CH, n & _U32, time_ns, time_ns, _CDR, time_ns, "
+        "def records(staged, _w=_w, _pack=_pack, _general=_general):\n"
+        "    n = base = _w._seq_truth\n"
+        "    batch = _w._batch\n"
+        "    for i, t in enumerate(staged):\n"
+        "        period_index, time_ns, state, disturbance_A, applied_A, drive_state = t\n"
+        "        if type(disturbance_A) is not tuple:\n"
+        "            try:\n"
+        f"                {''.join(f'{v}, ' for v in names)}= state\n"
+        "                batch += _pack(_OP, _LEN, _CH, n & _U32, time_ns, time_ns, _CDR, time_ns, "
         + "".join(f"{v}, " for v in names)
         + "disturbance_A, applied_A, period_index, drive_state)\n"
-        "    except (ValueError, TypeError, _StructError):\n"
-        "        return _general(t)\n"
-        "    _w._seq_truth = n + 1\n"
-        "    batch = _w._batch\n"
-        "    batch += record\n"
-        "    _w._batch_records += 1\n"
-        "    return None\n"
+        "                n += 1\n"
+        "                continue\n"
+        "            except (ValueError, TypeError, _StructError):\n"
+        "                pass\n"
+        "        _w._seq_truth = n\n"
+        "        _w._batch_records += n - base\n"
+        "        try:\n"
+        "            _general(t)\n"
+        "        except BaseException:\n"
+        "            _w._restage_truth(staged[i + 1 :])\n"
+        "            raise\n"
+        "        n = base = _w._seq_truth\n"
+        "    _w._seq_truth = n\n"
+        "    _w._batch_records += n - base\n"
     )
-    return _define("record", source, writer, pack, length, CH_TRUTH, general)
+    return _define("records", source, writer, pack, length, CH_TRUTH, general)
 
 
 def _define(

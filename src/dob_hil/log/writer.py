@@ -271,7 +271,7 @@ class LogWriter:
         self._staged_frames: list[tuple[int, can.Message, bool]] = []
         self._staged_frame_ns = 0  # the last staged frame's log time
         self._staged_truth: list[tuple[Any, ...]] = []
-        self._truth_record: Callable[[tuple[Any, ...]], None] | None = None  # set by truth_hook
+        self._truth_records: Callable[[list[tuple[Any, ...]]], None] | None = None  # set by truth_hook
         self._flush_bytes = flush_bytes
         self._flush_interval_ns = flush_interval_ns
         self._last_push_ns = time.monotonic_ns()
@@ -502,18 +502,15 @@ class LogWriter:
             if self._staged_frames:
                 self._pack_staged_frames()
             if self._staged_truth:
-                record = self._truth_record
-                assert record is not None  # only truth_hook's sink stages truth
-                staged = _take(self._staged_truth)
-                truth = None
-                try:
-                    for truth in staged:
-                        record(truth)
-                except BaseException:
-                    self._staged_truth[:0] = staged[_index_of(staged, truth) + 1 :]  # the rest stays staged
-                    raise
+                records = self._truth_records
+                assert records is not None  # only truth_hook's sink stages truth
+                records(_take(self._staged_truth))
         finally:
             self._next_bytes = min(len(self._batch) + STAGE_BYTES, self._batch_bytes)
+
+    def _restage_truth(self, rest: list[tuple[Any, ...]]) -> None:
+        """Truth taken for packing but not packed (one before it raised): staged again, first."""
+        self._staged_truth[:0] = rest
 
     def _pack_staged_frames(self) -> None:
         """The staged ``(time_ns, msg, is_rx)`` frames as records (a classic frame's inline; any
@@ -741,7 +738,7 @@ class LogWriter:
         if type(self).truth is not LogWriter.truth:
             return general
         # generated for the plant's state count (dob_hil.log.packers): no starred argument
-        self._truth_record = compile_truth_record(
+        self._truth_records = compile_truth_record(
             self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
         )
         return self._staged_truth.append
