@@ -1,8 +1,10 @@
 """BLAS runs on one thread while a session runs (dob_hil.loop.blas): no spinning workers beside
-the loop. Checked from inside the loop (the progress callback runs on the loop's thread)."""
+the loop, in the log writer process too; the heap is frozen while the loop runs
+(dob_hil.loop.heap). Checked from inside the loop (the progress callback runs on the loop's thread)."""
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -13,6 +15,7 @@ import firmware_sim.cli
 from dob_hil.config import Config
 from dob_hil.log import LogLayout, LogWriter
 from dob_hil.loop.blas import one_blas_thread
+from dob_hil.loop.heap import frozen_heap
 from dob_hil.loop.session import RunOptions, run_session
 
 
@@ -73,3 +76,27 @@ def test_the_log_writer_process_runs_one_thread(tmp_path: Path) -> None:
         assert b"OPENBLAS_NUM_THREADS=1" in environ
     finally:
         log.close({"exit_reason": "done"})
+
+
+def test_the_heap_is_frozen_while_the_loop_runs_and_returned_after(
+    paper_step: Config, log_path: Path
+) -> None:
+    """dob_hil.loop.heap: the setup's objects in the permanent generation during the loop only."""
+    frozen: list[int] = []
+    before = gc.get_freeze_count()
+    run_session(
+        paper_step,
+        RunOptions(
+            log_path=log_path, duration_s=0.1, progress=lambda k, n: frozen.append(gc.get_freeze_count())
+        ),
+    )
+    assert frozen and min(frozen) > 10_000  # the modules, the design, the drive: frozen
+    assert gc.get_freeze_count() == before
+    assert gc.isenabled()
+
+
+def test_frozen_heap_returns_the_objects_when_the_loop_fails() -> None:
+    with pytest.raises(RuntimeError), frozen_heap():
+        assert gc.get_freeze_count() > 0
+        raise RuntimeError("the loop failed")
+    assert gc.get_freeze_count() == 0

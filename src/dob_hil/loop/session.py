@@ -39,6 +39,7 @@ from dob_hil.log.writer import message_flags
 from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
+from dob_hil.loop.heap import frozen_heap
 from dob_hil.loop.host_clocked import run_host_clocked_lockstep, run_host_clocked_realtime
 from dob_hil.loop.inproc_bus import BUS_IMPLS, bus_pair
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
@@ -392,18 +393,19 @@ def _run_with_log(
         if mode == "lockstep":
             assert drive is not None
             link.enable_lockstep(drive.service)
-            if profile.clocking is Clocking.HOST:
-                exit_reason = run_host_clocked_lockstep(
-                    cycle,
-                    link,  # type: ignore[arg-type]
-                    drive,
-                    loop_log,
-                    limits,
-                    flag,
-                    progress,
-                )
-            else:
-                exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
+            with frozen_heap():
+                if profile.clocking is Clocking.HOST:
+                    exit_reason = run_host_clocked_lockstep(
+                        cycle,
+                        link,  # type: ignore[arg-type]
+                        drive,
+                        loop_log,
+                        limits,
+                        flag,
+                        progress,
+                    )
+                else:
+                    exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
         else:
             if drive is not None:
                 # the embedded drive's threads share this process's GIL with the loop: hand
@@ -412,17 +414,18 @@ def _run_with_log(
                 sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
                 drive.start()
             link.enable(int(options.enable_timeout_s * 1e9))
-            if profile.clocking is Clocking.HOST:
-                exit_reason = run_host_clocked_realtime(
-                    cycle,
-                    link,  # type: ignore[arg-type]
-                    loop_log,
-                    limits,
-                    flag,
-                    progress=progress,
-                )
-            else:
-                exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
+            with frozen_heap():
+                if profile.clocking is Clocking.HOST:
+                    exit_reason = run_host_clocked_realtime(
+                        cycle,
+                        link,  # type: ignore[arg-type]
+                        loop_log,
+                        limits,
+                        flag,
+                        progress=progress,
+                    )
+                else:
+                    exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
         if envelope.reason is not None and exit_reason == envelope.reason:
             raise SafetyTrip(envelope.reason)
     except SafetyTrip as exc:
