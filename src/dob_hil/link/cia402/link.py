@@ -611,6 +611,35 @@ class Cia402DriveLink(ClosingLink):
             if msg.arbitration_id == tpdo1_id and not (
                 msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame or msg.is_fd
             ):  # _dispatch's verdict for the cyclic answer, without the call
+                data = msg.data
+                if len(data) == _TPDO1_SIZE and self._awaiting_tpdo:
+                    # _on_tpdo1's common case, inline (the per-period path): the awaited answer, the
+                    # statusword unchanged in OPERATION ENABLED, a plausible encoder step; the same
+                    # effects and result
+                    statusword, raw_counts = _TPDO1_UNPACK(data)
+                    unwrap = self._unwrapper
+                    last = unwrap._last
+                    state = self._state
+                    if statusword == self._statusword and state is _OPERATION_ENABLED and last is not None:
+                        half = unwrap._half
+                        step = ((raw_counts - last + half) & unwrap._mask) - half  # update_step
+                        max_step = self._max_counts_step
+                        if -max_step <= step <= max_step:
+                            self._awaiting_tpdo = False
+                            unwrap._last = raw_counts
+                            unwrap._position = counts = unwrap._position + step
+                            stats = self.stats
+                            stats.feedback += 1
+                            return tuple.__new__(Feedback, (
+                                now_ns,
+                                (stats.syncs - 1) & 0xFF,
+                                (raw_counts,),
+                                (counts,),
+                                (counts / self._counts_per_unit,),
+                                True,
+                                bool(statusword & _SW_FAULT),
+                                bool(statusword & _INTERNAL_LIMIT),
+                            ))  # fmt: skip
                 feedback = self._on_tpdo1(msg, now_ns)
             else:
                 feedback = self._dispatch(msg, now_ns)
