@@ -110,7 +110,14 @@ class OdriveLockstep:
                                 core.fed = True
                                 current_A = torque / core.kt  # core.apply, inline: within the limit
                                 if core.torque_passthrough and abs(current_A) <= core.current_limit_A:
-                                    core.path.schedule(core.time_ns, current_A)
+                                    path = core.path  # path.schedule(core.time_ns, current_A), inline:
+                                    times = path._times_ns  # its common case, the latest change
+                                    t = core.time_ns
+                                    if not times or t >= times[-1]:
+                                        times.append(t)
+                                        path._currents_A.append(current_A)
+                                    else:
+                                        path.schedule(t, current_A)
                                 else:
                                     core.apply(core.time_ns)
                             if self._awaiting and core.cyclic:

@@ -260,6 +260,23 @@ class OdriveDriveLink(ClosingLink):
         if timeout_ns <= 0:
             msg = recv(0.0)
             reads = 1
+            if (  # the answer to the trigger, first in the queue (the per-period path): _consume, inline
+                msg is not None
+                and msg.arbitration_id == self._fast_answer_id
+                and not (msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame)
+            ):
+                now_ns = self._clock_ns()
+                if self._frame_hook is not None:
+                    self._frame_hook(msg, True)
+                self.stats.rx_frames += 1
+                if not self._estimates_fast(msg, now_ns):
+                    self._consume_general(msg, now_ns)
+                answer = self._pending
+                if answer is not None:
+                    self._pending = None
+                    return answer
+                msg = recv(0.0)
+                reads += 1
             while msg is not None:
                 self._consume(msg)
                 if self._pending is not None or reads >= MAX_READS_AFTER_DEADLINE:
@@ -482,6 +499,10 @@ class OdriveDriveLink(ClosingLink):
             and self._estimates_fast(msg, now_ns)
         ):
             return
+        self._consume_general(msg, now_ns)
+
+    def _consume_general(self, msg: can.Message, now_ns: int) -> None:
+        """A received frame that is not the common answer (logged and counted already)."""
         if msg.is_error_frame:
             self.stats.error_frames += 1
             self._event(now_ns, LinkEventKind.ERROR_FRAME, f"error frame {_describe(msg)}")
