@@ -58,6 +58,7 @@ _FAULT, _ENABLED, _DISABLED = DriveState.FAULT, DriveState.ENABLED, DriveState.D
 _TORQUE = struct.Struct("<f4x")  # Set_Input_Torque's payload (codec.decode_set_input_torque)
 _ESTIMATES = struct.Struct("<ff")
 _F32_MAX = codec.F32_MAX
+_INF = math.inf  # (a module constant: one load on the per-period path)
 
 
 class OdriveLockstep:
@@ -103,7 +104,7 @@ class OdriveLockstep:
                     data = msg.data
                     if len(data) == DLC:  # core._on_set_input_torque, inline
                         torque: float = _TORQUE.unpack(data)[0]
-                        if -math.inf < torque < math.inf:
+                        if -_INF < torque < _INF:
                             core.input_torque_Nm = torque
                             core.stats.commands_accepted += 1
                             if core.axis_state is _CLOSED_LOOP:
@@ -242,7 +243,7 @@ class OdriveLockstep:
         if rows is not None and self.fast:
             c0, c1, v0, v1 = rows
             pos_unit = c0 * x[0] + c1 * x[1]  # plant.position() of a two-state plant
-        if -math.inf < pos_unit < math.inf:
+        if -_INF < pos_unit < _INF:
             t = core.time_ns
             faults = core.faults
             offset_counts = 0 if faults is None else faults.counts(t // core.period_ns, 0)

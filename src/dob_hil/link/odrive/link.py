@@ -78,6 +78,7 @@ _BITS: Final = struct.Struct("<i")
 _F32: Final = struct.Struct("<f")
 _F32_AND_BITS: Final = struct.Struct("<fi")  # 4 bytes twice: as a float32, as an int32
 _DLC: Final = codec.DLC
+_INF: Final = math.inf  # (a module constant: one load on the per-period path)
 _CLOSED_LOOP: Final = int(AxisState.CLOSED_LOOP_CONTROL)
 _PAD4: Final = bytes(4)  # Set_Input_Torque's bytes 4..7
 FAST_PATH = True  # False: every frame and command through the general path (the fast path's tests)
@@ -306,11 +307,11 @@ class OdriveDriveLink(ClosingLink):
             # rounding by struct (the same C cast as numpy's); its bytes are the command's payload
             u = current_A[0]
             limit_A, kt = self._limit_A, self._kt
-            if limit_A < u < math.inf:  # saturated: the limit's command, computed once
+            if limit_A < u < _INF:  # saturated: the limit's command, computed once
                 result, self._q_payload = self._q_high
                 self._q_codes = result[0]
                 return result
-            if -math.inf < u < -limit_A:
+            if -_INF < u < -limit_A:
                 result, self._q_payload = self._q_low
                 self._q_codes = result[0]
                 return result
@@ -587,7 +588,7 @@ class OdriveDriveLink(ClosingLink):
         if self._answered or last_seq is None or len(data) != _DLC:
             return False
         pos_turns, vel = _ESTIMATES.unpack(data)
-        if not (-math.inf < pos_turns < math.inf and -math.inf < vel < math.inf):
+        if not (-_INF < pos_turns < _INF and -_INF < vel < _INF):
             return False
         counts = round(pos_turns * self._cpr)
         if not -MAX_COUNTS <= counts <= MAX_COUNTS:
