@@ -276,6 +276,7 @@ class Cia402DriveLink(ClosingLink):
             # thread hand-over per SDO, the same frames in the same order every run (the enable
             # takes about 2 ms instead of 3-8)
             network.after_send = functools.partial(self._settle_config, network, service)
+            network.after_send()  # what the drive sent before (its boot-up) comes first
         else:
             self._start_pump(network)
         self._configuring = True
