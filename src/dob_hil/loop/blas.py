@@ -10,7 +10,8 @@ library made for it, reaching every BLAS loaded in the process: numpy's and scip
 Measured on a 2-CPU machine (BENCHMARKS.md, "Issue 16 lockstep, sixth pass"): without the limit
 the first 8,000 lockstep samples of every session ran 20-30 ms slower in wall time than on this
 thread's CPU clock, with the process using up to 2.3 times the loop's CPU; with it, wall and CPU
-time agree from the first sample.
+time agree from the first sample. The log writer process is started with one BLAS thread for the
+same reason (``dob_hil.log.writer.WRITER_THREAD_ENV``).
 """
 
 from __future__ import annotations
