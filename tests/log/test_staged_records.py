@@ -163,3 +163,18 @@ def test_close_packs_what_is_staged(tmp_path: Path) -> None:
         assert log.stats.enqueued_records == 0  # still staged
     data = read_log(path)
     assert len(data.frames) == 1 and len(data.truth) == 1 and data.complete
+
+
+def test_a_malformed_staged_truth_keeps_the_counts_of_those_packed_before_it() -> None:
+    log = LogWriter(os.devnull, LAYOUT)
+    sink = log.truth_hook()
+    sink(_truth(0))
+    sink(_truth(1))
+    sink((2, 2 * PERIOD_NS))  # not a ground-truth tuple: the general path refuses it
+    sink(_truth(3))
+    with pytest.raises(ValueError):
+        log.flush(force=True)
+    assert log._seq_truth == 2 and log._batch_records == 2  # the two before it are in the batch
+    assert [t[0] for t in log._staged_truth] == [3]
+    log._pack_staged()
+    assert log._seq_truth == 3 and log._batch_records == 3 and not log._staged_truth
