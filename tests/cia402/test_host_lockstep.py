@@ -191,3 +191,24 @@ def test_lockstep_configuration_runs_in_one_thread_and_repeats_frame_for_frame(
     requests = [i for i, aid in enumerate(ids) if aid == sdo_rx]
     assert len(requests) > 40
     assert all(ids[i + 1] == sdo_tx for i in requests)  # the answer follows its request at once
+
+
+def test_a_drive_failing_during_lockstep_configuration_is_a_drive_fault(
+    step_cia402: Config, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The drive is serviced inside canopen's send: its error comes out as one DriveFault (the
+    CLI's one line), not as the raw exception."""
+    from firmware_sim.cia402.lockstep import Cia402Lockstep
+
+    calls = [0]
+    real = Cia402Lockstep.service
+
+    def failing(self: Cia402Lockstep) -> int:
+        calls[0] += 1
+        if calls[0] == 10:
+            raise RuntimeError("drive blew up")
+        return real(self)
+
+    monkeypatch.setattr(Cia402Lockstep, "service", failing)
+    with pytest.raises(DriveFault, match="drive blew up"):
+        run_session(step_cia402, RunOptions(log_path=tmp_path / "fail.mcap", duration_s=0.01))

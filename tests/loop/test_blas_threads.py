@@ -100,3 +100,14 @@ def test_frozen_heap_returns_the_objects_when_the_loop_fails() -> None:
         assert gc.get_freeze_count() > 0
         raise RuntimeError("the loop failed")
     assert gc.get_freeze_count() == 0
+
+
+def test_frozen_heap_leaves_an_earlier_freeze_alone() -> None:
+    gc.freeze()
+    try:
+        before = gc.get_freeze_count()
+        with frozen_heap(), frozen_heap():
+            assert gc.get_freeze_count() >= before
+        assert gc.get_freeze_count() == before  # the application's freeze is still there
+    finally:
+        gc.unfreeze()

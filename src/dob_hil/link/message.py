@@ -16,6 +16,8 @@ from typing import Final
 
 import can
 
+from dob_hil.link import base as _base  # noqa: F401  (its import checks can.Message's parameters)
+
 # the slots data_frame sets (Message.__slots__ of python-can 4, __weakref__ aside)
 MESSAGE_SLOTS: Final = frozenset({
     "timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "channel",
@@ -57,7 +59,7 @@ def _built(
 
 
 def _constructed(timestamp: float, arbitration_id: int, data: bytes | bytearray) -> can.Message:
-    return can.Message(timestamp, arbitration_id, False, False, False, None, None, data)
+    return can.Message(timestamp, arbitration_id, False, False, False, None, None, bytearray(data))
 
 
 def builder(slots: frozenset[str]) -> Callable[[float, int, bytes | bytearray], can.Message]:

@@ -23,7 +23,12 @@ from contextlib import contextmanager
 
 @contextmanager
 def frozen_heap() -> Iterator[None]:
-    """Every object tracked now in the permanent generation until the context ends."""
+    """Every object tracked now in the permanent generation until the context ends. Where objects
+    are frozen already (by the application, or an enclosing session), nothing is done: ``gc`` can
+    only unfreeze them all, which would undo the other freeze."""
+    if gc.get_freeze_count():
+        yield
+        return
     gc.freeze()
     try:
         yield

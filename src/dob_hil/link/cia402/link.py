@@ -276,17 +276,18 @@ class Cia402DriveLink(ClosingLink):
             # thread hand-over per SDO, the same frames in the same order every run (the enable
             # takes about 2 ms instead of 3-8)
             network.after_send = functools.partial(self._settle_config, network, service)
-            network.after_send()  # what the drive sent before (its boot-up) comes first
-        else:
-            self._start_pump(network)
-        self._configuring = True
+        self._configuring = True  # until the pump has stopped: SDO answers are expected
         try:
+            if network.after_send is not None:
+                network.after_send()  # what the drive sent before (its boot-up) comes first
+            else:
+                self._start_pump(network)
             self._configure(node)
             self._power_up(node, timeout_ns)
         finally:
-            self._configuring = False
             network.after_send = None
             self._stop_pump()
+            self._configuring = False
         self._awaiting_tpdo = False
 
     def _configure(self, node: Any) -> None:
@@ -531,13 +532,20 @@ class Cia402DriveLink(ClosingLink):
         it sent, until it has nothing left to do."""
         recv = self._bus.recv
         with self._lock:
-            for _ in range(SETTLE_ROUNDS):
-                worked = service() > 0
-                while (msg := recv(0.0)) is not None:
-                    worked = True
-                    self._take_config_frame(network, msg)
-                if not worked:
-                    return
+            try:
+                for _ in range(SETTLE_ROUNDS):
+                    worked = service() > 0
+                    while (msg := recv(0.0)) is not None:
+                        worked = True
+                        self._take_config_frame(network, msg)
+                    if not worked:
+                        return
+            except DobHilError:
+                raise
+            except can.CanError as exc:  # not canopen's to retry as a failed send: a DriveFault
+                raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
+            except Exception as exc:  # the drive failed while configured (the pump thread's report)
+                raise DriveFault(f"node {self._node}: configuring the drive: {exc!r}") from exc
 
     def _take_config_frame(self, network: _HookedNetwork, msg: can.Message) -> None:
         """A frame received while configuring: consumed, and an SDO answer handed to canopen."""
