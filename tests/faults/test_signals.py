@@ -82,6 +82,11 @@ class Run:
         return self.proc.stdout.read(), "".join(self.err)
 
 
+# lockstep runs as fast as the machine goes (30 s of paper-step take about a second here): a run
+# the signal must interrupt plans an hour, and stops long before it (memory does not grow with it)
+LOCKSTEP_HOUR = ["--scenario", "paper-step", "--duration", "3600"]
+
+
 def _patient_config(tmp_path: Path) -> Path:
     # real time on a loaded CI machine: widen the 3 ms timeouts to 3 s (VM stalls of 2-36 ms are
     # measured on this kind of machine, far more with CPU hogs beside the tests)
@@ -93,7 +98,7 @@ def _patient_config(tmp_path: Path) -> Path:
 @pytest.mark.parametrize("realtime", [False, True], ids=["lockstep", "realtime"])
 def test_signal_ends_the_run_cleanly(sig: signal.Signals, realtime: bool, tmp_path: Path) -> None:
     log = tmp_path / "run.mcap"
-    args = ["--scenario", "paper-step", "--duration", "30"]
+    args = LOCKSTEP_HOUR
     if realtime:
         args = [str(_patient_config(tmp_path)), "--duration", "30", "--realtime"]
     run = Run(args, log)
@@ -150,7 +155,7 @@ def test_writer_child_finishes_the_log_when_the_loop_is_killed(tmp_path: Path) -
 
 def test_sigterm_to_the_process_group_keeps_the_loops_summary(tmp_path: Path) -> None:
     log = tmp_path / "run.mcap"
-    run = Run(["--scenario", "paper-step", "--duration", "30"], log)
+    run = Run(LOCKSTEP_HOUR, log)
     run.wait_running(0.5)
     os.killpg(run.proc.pid, signal.SIGTERM)
     run.finish()
@@ -164,7 +169,7 @@ def test_sigterm_to_the_process_group_keeps_the_loops_summary(tmp_path: Path) ->
 def test_repeated_signals_while_stopping_keep_the_summary(sig: signal.Signals, tmp_path: Path) -> None:
     """A second (and third...) signal while the run stops and closes its log is noted, not fatal."""
     log = tmp_path / "run.mcap"
-    run = Run(["--scenario", "paper-step", "--duration", "30"], log)
+    run = Run(LOCKSTEP_HOUR, log)
     run.wait_running(0.3)
     run.proc.send_signal(sig)
     for _ in range(20):  # keep signalling through the stop sequence and the log's close
