@@ -21,7 +21,7 @@ from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import can
 
@@ -40,7 +40,7 @@ from dob_hil.loop.blas import one_blas_thread
 from dob_hil.loop.cycle import ControlCycle, CycleStats
 from dob_hil.loop.envelope import Envelope, SafetyTrip, check_encoder_resolution, encoder_jump_speed
 from dob_hil.loop.heap import frozen_heap
-from dob_hil.loop.host_clocked import run_host_clocked_lockstep, run_host_clocked_realtime
+from dob_hil.loop.host_clocked import HostClockedLink, run_host_clocked_lockstep, run_host_clocked_realtime
 from dob_hil.loop.inproc_bus import BUS_IMPLS, bus_pair
 from dob_hil.loop.rt_os import RtSettings, apply_rt_settings, restore_rt_settings
 from dob_hil.loop.runners import LoopLimits, run_lockstep, run_realtime
@@ -390,22 +390,18 @@ def _run_with_log(
     t_start = time.perf_counter()
     try:
         loop_log.event(None, "info", "run_start", f"{mode} run of {n_samples} samples")
+        runner: Callable[[], str]
+        # a host-clocked profile's link requests every answer (HostClockedLink)
+        host_link = cast(HostClockedLink, link) if profile.clocking is Clocking.HOST else None
         if mode == "lockstep":
             assert drive is not None
             link.enable_lockstep(drive.service)
-            with frozen_heap():
-                if profile.clocking is Clocking.HOST:
-                    exit_reason = run_host_clocked_lockstep(
-                        cycle,
-                        link,  # type: ignore[arg-type]
-                        drive,
-                        loop_log,
-                        limits,
-                        flag,
-                        progress,
-                    )
-                else:
-                    exit_reason = run_lockstep(cycle, link, drive, loop_log, limits, flag, progress)
+            if host_link is not None:
+                runner = functools.partial(
+                    run_host_clocked_lockstep, cycle, host_link, drive, loop_log, limits, flag, progress
+                )
+            else:
+                runner = functools.partial(run_lockstep, cycle, link, drive, loop_log, limits, flag, progress)
         else:
             if drive is not None:
                 # the embedded drive's threads share this process's GIL with the loop: hand
@@ -414,18 +410,16 @@ def _run_with_log(
                 sys.setswitchinterval(EMBEDDED_RT_SWITCH_INTERVAL_S)
                 drive.start()
             link.enable(int(options.enable_timeout_s * 1e9))
-            with frozen_heap():
-                if profile.clocking is Clocking.HOST:
-                    exit_reason = run_host_clocked_realtime(
-                        cycle,
-                        link,  # type: ignore[arg-type]
-                        loop_log,
-                        limits,
-                        flag,
-                        progress=progress,
-                    )
-                else:
-                    exit_reason = run_realtime(cycle, link, loop_log, limits, flag, progress=progress)
+            if host_link is not None:
+                runner = functools.partial(
+                    run_host_clocked_realtime, cycle, host_link, loop_log, limits, flag, progress=progress
+                )
+            else:
+                runner = functools.partial(
+                    run_realtime, cycle, link, loop_log, limits, flag, progress=progress
+                )
+        with frozen_heap():
+            exit_reason = runner()
         if envelope.reason is not None and exit_reason == envelope.reason:
             raise SafetyTrip(envelope.reason)
     except SafetyTrip as exc:
