@@ -8,6 +8,10 @@ once and drops every change due later, since a disabled power stage applies noth
 from __future__ import annotations
 
 import bisect
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from firmware_sim.plant import PlantModel
 
 
 class CurrentPath:
@@ -46,17 +50,26 @@ class CurrentPath:
             self.held_A = self._currents_A[n - 1]
             del times[:n], self._currents_A[:n]
 
-    def settle(self, t_ns: int) -> bool:
-        """:meth:`apply_due` at ``t_ns``; True if no change is pending after it (one call for the
-        per-period path's common case)."""
+    def advance_held(self, plant: PlantModel, t0_ns: int, t1_ns: int) -> bool:
+        """:meth:`apply_due` at ``t0_ns``, then, if no change is pending after it, ``plant``
+        advanced from ``t0_ns`` to ``t1_ns`` with the held current (its 2-state path where it
+        applies, else :meth:`PlantModel.advance`, bit for bit the same) and True. False with the
+        plant untouched when a change is pending: the caller integrates change by change.
+
+        One call for the common case of every drive's per-period path (native, CiA 402, ODrive)."""
         times = self._times_ns
-        if times and times[0] <= t_ns:
+        if times and times[0] <= t0_ns:
             if len(times) == 1:  # the one change the last period scheduled (apply_due, inline)
                 self.held_A = self._currents_A.pop()
                 times.pop()
             else:
-                self.apply_due(t_ns)
-        return not times
+                self.apply_due(t0_ns)
+        if times:
+            return False
+        held_A = self.held_A
+        if not plant.advance_2state(t0_ns, t1_ns, held_A):
+            plant.advance(t0_ns, t1_ns, held_A)
+        return True
 
     @property
     def final_A(self) -> float:

@@ -380,8 +380,7 @@ class DriveCore:
         try:
             t = self.time_ns
             path = self.path
-            if t < t_ns and path.settle(t):  # the common case: one held current over the whole span
-                self.plant.advance(t, t_ns, path.held_A)
+            if t < t_ns and path.advance_held(self.plant, t, t_ns):  # one held current over the span
                 self.time_ns = t_ns
             else:
                 self._integrate_to(t_ns)

@@ -177,17 +177,7 @@ class FastPeriod:
         origin = plan.origin_ns
         path, plant = core.path, core.plant
         tau = now_ns - origin
-        times = path._times_ns  # path.settle(tau), inline: the change the last period scheduled
-        if times and times[0] <= tau:
-            if len(times) == 1:
-                path.held_A = path._currents_A.pop()
-                times.pop()
-            else:
-                path.apply_due(tau)
-        if not times:  # one current over the whole period (as _integrate_to would hold it)
-            held = path.held_A
-            if not plant.advance_2state(tau, tau + period_ns, held):
-                plant.advance(tau, tau + period_ns, held)
+        if path.advance_held(plant, tau, tau + period_ns):  # one current over the whole period
             core.time_ns = t
         else:
             core._integrate_to(t)

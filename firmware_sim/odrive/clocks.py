@@ -177,18 +177,7 @@ class OdriveLockstep:
         t = core.time_ns
         t1 = t + core.period_ns
         path = core.path
-        times = path._times_ns  # path.settle(t), inline: the change the last period scheduled
-        if times and times[0] <= t:
-            if len(times) == 1:
-                path.held_A = path._currents_A.pop()
-                times.pop()
-            else:
-                path.apply_due(t)
-        if not times:  # no current change due inside the period
-            plant = core.plant
-            held_A = path.held_A
-            if not plant.advance_2state(t, t1, held_A):  # the shared 2-state cells, else the general
-                plant.advance(t, t1, held_A)
+        if path.advance_held(core.plant, t, t1):  # no current change due inside the period
             core.time_ns = t1
         else:
             core.integrate_to(t1)

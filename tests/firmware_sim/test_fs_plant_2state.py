@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dob_hil.config import Config
+from firmware_sim.actuator import CurrentPath
 from firmware_sim.disturbance import Disturbance
 from firmware_sim.plant import DISTURBANCE_BLOCK, PlantModel, periods_per_block, zoh
 
@@ -247,3 +248,39 @@ def test_noise_whose_origin_moved_integrates_the_cells_before_it() -> None:
     values = noise.values_A(np.array([0.0, 0.25, 0.5, 0.75]))
     assert values[0] == values[1] == 0.0
     assert values[3] == noise.value_A(0.75)
+
+
+# --- CurrentPath.advance_held: the per-period common case of every drive -------------------------
+def test_advance_held_applies_the_due_change_then_advances_one_period() -> None:
+    fast, general = _pair(10, "sine", [0.1, -2.0])
+    period_ns = fast.period_ns
+    path = CurrentPath()
+    path.schedule(5 * period_ns, 0.7)  # the change the last period scheduled, due at the start
+    assert path.advance_held(fast, 5 * period_ns, 6 * period_ns)
+    general.advance(5 * period_ns, 6 * period_ns, 0.7)
+    assert path.held_A == 0.7 and path.pending == 0
+    assert fast.state == general.state  # bit for bit
+
+
+def test_advance_held_leaves_the_plant_to_the_caller_while_a_change_is_pending() -> None:
+    fast, _ = _pair(10, "sine", [0.1, -2.0])
+    period_ns = fast.period_ns
+    path = CurrentPath()
+    path.schedule(0, 0.2)
+    path.schedule(period_ns // 2, 0.4)  # due inside the period: integrated change by change
+    before = fast.state
+    assert not path.advance_held(fast, 0, period_ns)
+    assert fast.state == before and path.held_A == 0.2 and path.next_change_ns() == period_ns // 2
+
+
+def test_advance_held_on_a_three_state_plant_takes_the_general_advance() -> None:
+    cfg = _config(5, "sine", three_states=True)
+    plants = [
+        PlantModel(cfg.plant, 5, Disturbance(cfg.sim.disturbances, cfg.plant.period_s / 5), None)
+        for _ in range(2)
+    ]
+    path = CurrentPath()
+    path.held_A = 0.3
+    assert path.advance_held(plants[0], 0, 3 * cfg.plant.period_ns)
+    plants[1].advance(0, 3 * cfg.plant.period_ns, 0.3)
+    assert plants[0].state == plants[1].state and plants[0].state != (0.0, 0.0, 0.0)
