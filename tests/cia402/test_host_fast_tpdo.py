@@ -10,6 +10,7 @@ from collections import deque
 
 import can
 from host_peer import FAULT, OE, QSA, SO
+from twin_links import assert_same_link_state
 
 from dob_hil.config import load_config
 from dob_hil.link.base import LinkEvent
@@ -82,15 +83,8 @@ def test_the_inline_tpdo1_matches_on_tpdo1() -> None:
         got = fast.receive_feedback(0)
         want = general._on_tpdo1(msg, 42)
         assert got == want
-        for name in ("_awaiting_tpdo", "_statusword", "_state"):
-            assert getattr(fast, name) == getattr(general, name), name
-        assert (fast._unwrapper._last, fast._unwrapper._position) == (
-            general._unwrapper._last,
-            general._unwrapper._position,
-        )
-        names = [k for k in type(fast.stats).__slots__ if k != "rx_frames"]
-        assert [getattr(fast.stats, k) for k in names] == [getattr(general.stats, k) for k in names]
-        assert [(e.kind, e.message) for e in ev_fast] == [(e.kind, e.message) for e in ev_general]
+        fields = ("_awaiting_tpdo", "_statusword", "_state")
+        assert_same_link_state(fast, general, fields, ev_fast, ev_general)
         delivered += fast.stats.feedback - before
     assert fast.stats.rx_frames == 5000
     assert fast.stats.encoder_jumps > 0 and fast.stats.stale_feedback > 0 and fast.stats.malformed_frames > 0

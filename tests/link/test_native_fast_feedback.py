@@ -9,6 +9,7 @@ import struct
 from collections import deque
 
 import can
+from twin_links import assert_same_link_state
 
 from dob_hil.config import DriveConfig
 from dob_hil.link.base import LinkEvent
@@ -72,15 +73,7 @@ def test_delivered_feedback_matches_on_feedback() -> None:
         want = general._on_feedback(msg, 42)
         assert got == want
         fields = ("_last_seq", "_state", "_resync", "_last_fault")
-        assert [getattr(fast, f) for f in fields] == [getattr(general, f) for f in fields]
-        assert (fast._unwrapper._last, fast._unwrapper._position) == (
-            general._unwrapper._last,
-            general._unwrapper._position,
-        )
-        stats_fast = {k: getattr(fast.stats, k) for k in fast.stats.__slots__ if k != "rx_frames"}
-        stats_general = {k: getattr(general.stats, k) for k in general.stats.__slots__ if k != "rx_frames"}
-        assert stats_fast == stats_general
-        assert [(e.kind, e.message) for e in ev_fast] == [(e.kind, e.message) for e in ev_general]
+        assert_same_link_state(fast, general, fields, ev_fast, ev_general)
         delivered += fast.stats.feedback - before
     assert fast.stats.rx_frames == 5000
     assert fast.stats.encoder_jumps > 0 and fast.stats.stale_feedback > 0 and fast.stats.missed_feedback > 0
