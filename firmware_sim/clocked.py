@@ -85,6 +85,7 @@ class ClockedDrive(Generic[L, R]):
         """Lockstep: a cheap reader of the simulated time (:attr:`time_ns` without the property
         chain). A clock without a ``core`` holding ``time_ns`` gets a reader of the drive's own
         ``time_ns``."""
+        self._need_lockstep("lockstep_clock_ns")
         core = self.lockstep_time_source()
         if core is None:
             return lambda: int(getattr(self, "time_ns"))  # noqa: B009 (the subclass's property)

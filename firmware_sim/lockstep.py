@@ -210,8 +210,6 @@ class LockstepClock:
         elif core.silent:
             stats.frames_suppressed += 1
         else:
-            # positional: timestamp, id, extended, remote, error, channel, dlc (from data), data
-            # (dob_hil.link.base.MESSAGE_LEADING_PARAMS)
             self.bus.send(data_frame(0.0, self._feedback_id, payload))
             stats.feedback_sent += 1
         sink = self.truth_sink

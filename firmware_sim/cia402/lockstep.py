@@ -4,8 +4,9 @@
 to and including a SYNC and acts on each in order, in the calling thread: SDO requests are
 answered at once, NMT commands and RPDOs taken, and a SYNC integrates one period (none for the
 first SYNC, which is t = 0), samples and sends the synchronous TPDOs. It is safe to call with
-nothing pending and from a helper thread (a lock serialises callers), so a host whose SDO client
-blocks can keep the drive serviced while it configures it. :meth:`advance_period` lets one
+nothing pending and from any thread (a lock serialises callers and the drive's read-outs). While
+the dob_hil host configures the drive it services it after every frame it sends, in its own
+thread, so the SDO answer canopen waits for is there when it looks. :meth:`advance_period` lets one
 period pass without a SYNC. TPDO loss (``sim.loss_probability``, seeded) applies; latency and
 jitter need a wall clock and are ignored, as in the native lockstep drive.
 

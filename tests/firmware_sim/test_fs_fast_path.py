@@ -205,3 +205,14 @@ def test_exchange_declines_without_changing_anything() -> None:
     assert not clock._exchange(100, 0)  # not ENABLED (and no sample yet)
     assert (clock.core.time_ns, clock.core.plant.state, vars(clock.core.stats)) == before
     assert not truths[0] and not clocks[0][2]
+
+
+def test_lockstep_readers_refuse_a_real_time_drive_naming_the_call() -> None:
+    bus = InProcessBus("t", deque(), deque())
+    try:
+        drive = SimulatedDrive(bus, make_config(), clock="realtime")
+        for name in ("lockstep_clock_ns", "lockstep_time_source", "service"):
+            with pytest.raises(RuntimeError, match=rf"^{name}\(\) is for the lockstep clock"):
+                getattr(drive, name)()
+    finally:
+        bus.shutdown()

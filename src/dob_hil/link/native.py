@@ -722,8 +722,6 @@ class NativeDriveLink(ClosingLink):
         # (logging) comes after, outside the feedback-to-command path
         if self._closed:
             self._check_open()
-        # positional (dob_hil.link.base.MESSAGE_LEADING_PARAMS): timestamp, id, extended, remote,
-        # error, channel, dlc (from data), data
         msg = data_frame(0.0, self._command_id, payload)
         try:
             self._bus.send(msg, self._send_timeout_s)

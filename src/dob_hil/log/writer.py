@@ -15,18 +15,20 @@ full the policy decides:
 
 Lockstep's per-period records from the bus and the simulated drive (each CAN frame, the ground
 truth) are staged rather than packed where they happen: the frame hook of
-:meth:`LogWriter.clocked_frame_hook` queues the frame with its time, and the sink of
-:meth:`LogWriter.truth_hook` is a queue's ``append``. The owner thread packs them into its batch
-in one pass each time the batch grew by ``STAGE_BYTES`` (about 90 samples) and at every hand-over,
-in their order per channel; packing a run of them costs about half what packing each one in the
-middle of a period costs (BENCHMARKS.md, "Issue 16 lockstep, sixth pass"). The same records, with
-the same sequence numbers and times, reach the file; only their interleaving across channels
+:meth:`LogWriter.clocked_frame_hook` stages the frame with its time, and the sink of
+:meth:`LogWriter.truth_hook` is a staging list's ``append`` (atomic under the GIL: any thread may
+stage; the owner takes what was staged with :func:`_take`). The owner thread packs them into its
+batch in one pass each time the batch grew by ``STAGE_BYTES`` (about 90 samples) and at every
+hand-over, in their order per channel; packing a run of them costs about half what packing each one
+in the middle of a period costs (BENCHMARKS.md, "Issue 16 lockstep, sixth pass"). The same records,
+with the same sequence numbers and times, reach the file; only their interleaving across channels
 within a batch differs.
 
-Threads: the thread that made the writer owns it (the control thread). Records from any other
-thread (the embedded real-time drive's timer thread writes ground truth) go to a lock-free queue
-(``collections.deque``) that the owner moves into its batch at the next hand-over, so no batch is
-ever shared between threads. Each channel must be written by one thread only (events: any).
+Threads: the thread that made the writer owns it (the control thread). Records packed by any other
+thread go to a lock-free queue (``collections.deque``), and staged frames and truth (the embedded
+real-time drive's timer thread writes ground truth) to the staging lists; the owner moves both into
+its batch at the next hand-over, so no batch is ever shared between threads. Each channel must be
+written by one thread only (events: any).
 
 A writer-process failure (a full disk, a file size limit) is raised as :class:`LogWriteError` on
 the owner thread at the next hand-over, with how many records were lost.
@@ -722,8 +724,8 @@ class LogWriter:
         """A ground-truth sink for a simulated drive: takes its truth tuple ``(period_index,
         time_ns, state, disturbance_A, applied_current_A, drive_state)`` (firmware_sim's
         ``GroundTruth``: one float each; a multi-axis drive's: a tuple per input) and logs it as
-        :meth:`truth` does. The sink stages the tuple (a queue's ``append``: any thread; module
-        docstring); the owner thread packs it, the single-axis record in one generated call, a
+        :meth:`truth` does. The sink stages the tuple (a staging list's ``append``: any thread;
+        module docstring); the owner thread packs it, the single-axis record in one generated call, a
         multi-axis one and anything that does not pack through :meth:`truth` (which names what did
         not pack). A subclass that overrides :meth:`truth` gets a sink calling it at once."""
         truth = self.truth
