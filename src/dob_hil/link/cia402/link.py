@@ -544,7 +544,7 @@ class Cia402DriveLink(ClosingLink):
                 raise
             except can.CanError as exc:  # not canopen's to retry as a failed send: a DriveFault
                 raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
-            except Exception as exc:  # the drive failed while configured (the pump thread's report)
+            except Exception as exc:  # service() raised: the embedded drive failed while configured
                 raise DriveFault(f"node {self._node}: configuring the drive: {exc!r}") from exc
 
     def _take_config_frame(self, network: _HookedNetwork, msg: can.Message) -> None:
