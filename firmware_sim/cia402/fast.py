@@ -190,12 +190,12 @@ class FastPeriod:
         held_A = path.held_A
         # --- sample (Cia402Core._sample) ---
         row = plan.position_row
-        if row is not None:
-            x = plant._x
-            position = row[0] * x[0] + row[1] * x[1]  # plant.position() of a 2-state plant
-        else:
-            position = plant.position()
         try:
+            if row is not None:
+                x = plant._x
+                position = row[0] * x[0] + row[1] * x[1]  # plant.position() of a 2-state plant
+            else:
+                position = plant.position()  # may raise too (math.fsum of +inf and -inf)
             counts = core.encoder.read(position)
         except ValueError:  # not finite or beyond any count, an encoder fault: the general tail
             core._rpdo_since_sync = True

@@ -222,14 +222,15 @@ class Rig:
 
 
 @pytest.fixture
-def rig_of() -> Iterator[Callable[[bool], Rig]]:
+def rig_of() -> Iterator[Callable[..., Rig]]:
     buses: list[can.BusABC] = []
 
-    def make(fast_path: bool) -> Rig:
+    def make(fast_path: bool, config: Config | None = None) -> Rig:
         host, drive_end = bus_pair(f"fast-path-{len(buses)}")
         buses.extend((host, drive_end))
         truths: list[GroundTruth] = []
-        drive = SimulatedCia402Drive(drive_end, make_config(), truth_sink=truths.append, fast_path=fast_path)
+        config = make_config() if config is None else config
+        drive = SimulatedCia402Drive(drive_end, config, truth_sink=truths.append, fast_path=fast_path)
         rig = Rig(host, drive, truths)
         rig.period()  # the boot-up frame
         # the host link's PDOs (the EDS's defaults have a second RPDO and TPDO): those two off
@@ -275,7 +276,7 @@ def _script(rig: Rig) -> None:
 
 
 def test_frame_by_frame_the_drive_sends_and_does_the_same_with_and_without_the_fused_period(
-    rig_of: Callable[[bool], Rig], fast_syncs: Counter
+    rig_of: Callable[..., Rig], fast_syncs: Counter
 ) -> None:
     fast, general = rig_of(True), rig_of(False)
     _script(fast)
@@ -293,7 +294,44 @@ def test_frame_by_frame_the_drive_sends_and_does_the_same_with_and_without_the_f
     assert any(aid == 0x080 + NODE for aid, _ in fast.sent)  # its EMCY
 
 
-def test_the_fused_period_sends_the_tpdo_message_canopen_would(rig_of: Callable[[bool], Rig]) -> None:
+# a 3-state plant (a current loop's lag): plant.position() is math.fsum, which raises ValueError
+# for +inf and -inf among its terms, where a 2-state position gives NaN
+PLANT_3 = {
+    "A": [[0.0, 1.0, 0.0], [0.0, -50.0, 3000.0], [0.0, 0.0, -2000.0]],
+    "B": [[0.0], [0.0], [2000.0]],
+    "C": [[1.0, 0.001, 0.0]],
+    "state_names": None,
+}
+
+
+def test_a_position_that_cannot_be_computed_is_an_encoder_fault_on_both_paths(
+    rig_of: Callable[..., Rig], fast_syncs: Counter
+) -> None:
+    config = make_config(plant=PLANT_3, **{"design.estimator": {"Lc": None}, "design.feedback": {"Kc": None}})
+    rigs = []
+    for fast_path in (True, False):
+        rig = rig_of(fast_path, config)
+        for k in range(10):
+            rig.period(_rpdo(0x0F, 10 * k), _msg(SYNC))
+        taken = fast_syncs.fast
+
+        def unmeasurable() -> float:
+            return math.fsum((math.inf, -math.inf))  # raises ValueError
+
+        rig.drive.core.plant.position = unmeasurable  # type: ignore[method-assign]
+        rig.period(_rpdo(0x0F, 50), _msg(SYNC))
+        rig.period(_rpdo(0x00, 0), _msg(SYNC))
+        assert rig.drive.core.error_code == 0x7305, fast_path  # the encoder fault, no exception
+        assert any(aid == 0x080 + NODE for aid, _ in rig.sent)  # its EMCY
+        rigs.append((rig, taken))
+    (fast, fast_taken), (general, _) = rigs
+    assert fast_taken >= 9  # the fused period ran before the fault
+    assert fast.sent == general.sent
+    assert repr(fast.truths) == repr(general.truths)
+    assert [repr(a) for a in fast.trace] == [repr(b) for b in general.trace]
+
+
+def test_the_fused_period_sends_the_tpdo_message_canopen_would(rig_of: Callable[..., Rig]) -> None:
     """The TPDO leaves as the same python-can Message as canopen's Network.send_message builds."""
     rig = rig_of(True)
     rig.period(_rpdo(0x0F, 10), _msg(SYNC))
