@@ -10,8 +10,6 @@ or on a real-time clock (its own threads: :meth:`ClockedDrive.start`, :meth:`Clo
 from __future__ import annotations
 
 import contextlib
-import functools
-from collections.abc import Callable
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar
 
@@ -81,22 +79,12 @@ class ClockedDrive(Generic[L, R]):
         if clock is not None:
             vars(self).update(service=clock.service, advance_period=clock.advance_period)
 
-    def lockstep_clock_ns(self) -> Callable[[], int]:
-        """Lockstep: a cheap reader of the simulated time (:attr:`time_ns` without the property
-        chain). A clock without a ``core`` holding ``time_ns`` gets a reader of the drive's own
-        ``time_ns``."""
-        self._need_lockstep("lockstep_clock_ns")
-        core = self.lockstep_time_source()
-        if core is None:
-            return lambda: int(getattr(self, "time_ns"))  # noqa: B009 (the subclass's property)
-        return functools.partial(getattr, core, "time_ns")
-
     def lockstep_time_source(self) -> Any:
-        """Lockstep: the object whose ``time_ns`` attribute is the simulated time (the clock's
-        ``core``; the session's frame stamper reads it for every frame), or None where the drive
-        has no such object (then :meth:`lockstep_clock_ns`)."""
+        """Lockstep: the object whose ``time_ns`` attribute is the simulated time, read by the
+        session's frame stamper for every frame: the clock's ``core`` (a plain attribute), else
+        the drive itself (its :attr:`time_ns` property)."""
         core = getattr(self._need_lockstep("lockstep_time_source"), "core", None)
-        return core if core is not None and hasattr(core, "time_ns") else None
+        return core if core is not None and hasattr(core, "time_ns") else self
 
     # --- lockstep ------------------------------------------------------------------------------
     def service(self) -> int:

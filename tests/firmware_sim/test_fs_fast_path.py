@@ -95,18 +95,19 @@ class _BareDrive(ClockedDrive[_BareClock, Any]):
         self.time_ns = 1234
 
 
-def test_lockstep_clock_ns_reads_the_core_or_the_drive() -> None:
+def test_the_lockstep_time_source_is_the_core_or_the_drive() -> None:
     drive = _BareDrive()
-    assert drive.lockstep_clock_ns()() == 1234
+    assert drive.lockstep_time_source() is drive  # no core: the drive's own time_ns
     drive.time_ns = 5678
-    assert drive.lockstep_clock_ns()() == 5678
+    assert drive.lockstep_time_source().time_ns == 5678
     assert drive.service() == 0  # bound straight to the clock's
     bus = InProcessBus("t", deque(), deque())
     try:
         native = SimulatedDrive(bus, make_config(), clock="lockstep")
-        clock_ns = native.lockstep_clock_ns()
+        source = native.lockstep_time_source()
+        assert source is not native  # the core: an attribute, not the drive's property chain
         native.advance_period()
-        assert clock_ns() == native.time_ns == native.config.plant.period_ns
+        assert source.time_ns == native.time_ns == native.config.plant.period_ns
     finally:
         bus.shutdown()
 
@@ -211,7 +212,7 @@ def test_lockstep_readers_refuse_a_real_time_drive_naming_the_call() -> None:
     bus = InProcessBus("t", deque(), deque())
     try:
         drive = SimulatedDrive(bus, make_config(), clock="realtime")
-        for name in ("lockstep_clock_ns", "lockstep_time_source", "service"):
+        for name in ("lockstep_time_source", "service", "advance_period"):
             with pytest.raises(RuntimeError, match=rf"^{name}\(\) is for the lockstep clock"):
                 getattr(drive, name)()
     finally:

@@ -11,6 +11,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from log_checks import CallClock
 
 from dob_hil.errors import DobHilError
 from dob_hil.log import LogLayout, LogWriteError, LogWriter, read_log
@@ -285,7 +286,7 @@ def test_clocked_frame_hook_writes_what_frame_raw_writes(tmp_path: Path) -> None
     times = iter(range(1000, 100_000, 300))
     clock_ns = lambda: next(times)  # noqa: E731
     with LogWriter(tmp_path / "hook.mcap", LAYOUT) as log:
-        hook = log.clocked_frame_hook(clock_ns)
+        hook = log.clocked_frame_hook(CallClock(clock_ns))
         for _ in range(3):
             for msg, is_rx in msgs:
                 hook(msg, is_rx)
@@ -304,7 +305,7 @@ def test_clocked_frame_hook_writes_what_frame_raw_writes(tmp_path: Path) -> None
         assert np.array_equal(a.fd_frames[name], b.fd_frames[name]), name
 
 
-def test_source_clocked_frame_hook_logs_each_frame_at_the_sources_time_then(tmp_path: Path) -> None:
+def test_clocked_frame_hook_logs_each_frame_at_the_sources_time_then(tmp_path: Path) -> None:
     """The lockstep stamper's hook reads ``source.time_ns`` when the frame passes, not when packed."""
 
     class Source:
@@ -314,7 +315,7 @@ def test_source_clocked_frame_hook_logs_each_frame_at_the_sources_time_then(tmp_
     msgs = [can.Message(arbitration_id=0x80 + i, data=bytes([i]), is_extended_id=False) for i in range(5)]
     path = tmp_path / "source.mcap"
     with LogWriter(path, LAYOUT) as log:
-        hook = log.source_clocked_frame_hook(source)
+        hook = log.clocked_frame_hook(source)
         for i, msg in enumerate(msgs):
             source.time_ns = 1000 * i
             hook(msg, i % 2 == 0)

@@ -12,6 +12,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from log_checks import CallClock
 
 from dob_hil.log import LogLayout, LogWriteError, LogWriter, read_log
 from dob_hil.log.check import assert_complete
@@ -61,7 +62,7 @@ def test_staged_records_read_back_as_those_packed_at_once(tmp_path: Path) -> Non
     staged_path, direct_path = tmp_path / "staged.mcap", tmp_path / "direct.mcap"
     now = [0]
     with LogWriter(staged_path, LAYOUT) as log:
-        hook, sink = log.clocked_frame_hook(lambda: now[0]), log.truth_hook()
+        hook, sink = log.clocked_frame_hook(CallClock(lambda: now[0])), log.truth_hook()
         for k in range(n):
             now[0] = k * PERIOD_NS
             for msg, is_rx in _period_frames(k):
@@ -91,7 +92,7 @@ def test_staged_records_read_back_as_those_packed_at_once(tmp_path: Path) -> Non
 
 def test_the_stage_stays_short_in_a_long_run() -> None:
     with LogWriter(os.devnull, LAYOUT) as log:
-        hook, sink = log.clocked_frame_hook(lambda: 0), log.truth_hook()
+        hook, sink = log.clocked_frame_hook(CallClock(lambda: 0)), log.truth_hook()
         longest = 0
         for k in range(20_000):
             for msg, is_rx in _period_frames(k)[:3]:
@@ -110,7 +111,7 @@ def test_frames_staged_by_another_thread_keep_their_order_and_times_never_step_b
     path = tmp_path / "threads.mcap"
     times = iter([5_000, 4_000, 6_000])  # the other thread read the clock before the first frame
     with LogWriter(path, LAYOUT) as log:
-        hook = log.clocked_frame_hook(lambda: next(times))
+        hook = log.clocked_frame_hook(CallClock(lambda: next(times)))
         hook(can.Message(arbitration_id=0x601, data=b"\x40\x00\x10\x00", is_extended_id=False), False)
         other = threading.Thread(
             target=hook, args=(can.Message(arbitration_id=0x581, data=b"\x43", is_extended_id=False), True)
@@ -126,7 +127,7 @@ def test_frames_staged_by_another_thread_keep_their_order_and_times_never_step_b
 
 def test_a_staged_frame_that_cannot_be_logged_is_named() -> None:
     log = LogWriter(os.devnull, LAYOUT)
-    hook = log.clocked_frame_hook(lambda: 0)
+    hook = log.clocked_frame_hook(CallClock(lambda: 0))
     hook(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False), True)
     hook(can.Message(arbitration_id=0x181, data=bytes(65), is_fd=True, is_extended_id=False), True)
     hook(can.Message(arbitration_id=0x182, data=b"\x02", is_extended_id=False), True)
@@ -157,7 +158,7 @@ def test_a_staged_truth_that_cannot_be_logged_leaves_the_rest_staged() -> None:
 def test_close_packs_what_is_staged(tmp_path: Path) -> None:
     path = tmp_path / "close.mcap"
     with LogWriter(path, LAYOUT) as log:
-        hook, sink = log.clocked_frame_hook(lambda: 7), log.truth_hook()
+        hook, sink = log.clocked_frame_hook(CallClock(lambda: 7)), log.truth_hook()
         hook(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False), False)
         sink(_truth(0))
         assert log.stats.enqueued_records == 0  # still staged

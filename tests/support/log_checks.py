@@ -3,11 +3,13 @@
 :func:`assert_log_times_monotonic` reads the file with the ``mcap`` library (an implementation
 independent of ``dob_hil.log``), in file order, and checks that every channel's log time is
 non-decreasing: a log-time-ordered reader (Foxglove, ``mcap``'s default iterator) then sees each
-channel in the order it was written.
+channel in the order it was written. :class:`CallClock` is a ``time_ns`` attribute computed by a
+function, for ``LogWriter.clocked_frame_hook``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from mcap.reader import make_reader
@@ -32,3 +34,14 @@ def assert_log_times_monotonic(path: Path) -> dict[str, list[int]]:
             f"{path.name}: {topic} steps back at message {back}: {ts[back - 1]} -> {ts[back]} ns"  # type: ignore[operator]
         )
     return times
+
+
+class CallClock:
+    """A time source whose ``time_ns`` is ``now_ns()`` at each read."""
+
+    def __init__(self, now_ns: Callable[[], int]) -> None:
+        self._now_ns = now_ns
+
+    @property
+    def time_ns(self) -> int:
+        return self._now_ns()

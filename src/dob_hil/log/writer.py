@@ -63,7 +63,7 @@ import dob_hil
 from dob_hil.errors import LogWriteError
 from dob_hil.log import pipe
 from dob_hil.log.metadata import log_format_metadata, versions_metadata
-from dob_hil.log.packers import compile_sample, compile_truth_record
+from dob_hil.log.packers import compile_sample, compile_truth_records
 from dob_hil.log.schemas import (
     CAN_DATA_BYTES,
     CAN_FD_DATA_BYTES,
@@ -511,7 +511,8 @@ class LogWriter:
             self._next_bytes = min(len(self._batch) + STAGE_BYTES, self._batch_bytes)
 
     def _restage_truth(self, rest: list[tuple[Any, ...]]) -> None:
-        """Truth taken for packing but not packed (one before it raised): staged again, first."""
+        """Truth taken for packing but not packed (the records after one that raised): staged
+        again, ahead of any staged since."""
         self._staged_truth[:0] = rest
 
     def _pack_staged_frames(self) -> None:
@@ -527,8 +528,8 @@ class LogWriter:
         try:
             for item in frames:
                 t, msg, is_rx = item
-                # non-decreasing: a frame staged by another thread (a link's receive thread while
-                # the drive is configured) may have read the clock before the frame ahead of it
+                # non-decreasing, whatever the clock: a hook called from another thread (the
+                # staging list takes any) may have read it before the frame ahead of it
                 if t < last_ns:  # noqa: PLR1730 (a comparison, no call)
                     t = last_ns
                 last_ns = t
@@ -551,7 +552,8 @@ class LogWriter:
                 n = self._seq_can
         except BaseException:
             # the frame that raised is dropped (named by the error), the ones after it stay staged
-            self._staged_frames[:0] = frames[_index_of(frames, item) + 1 :]
+            done = 0 if item is None else _index_of(frames, item) + 1
+            self._staged_frames[:0] = frames[done:]
             raise
         finally:
             self._seq_can = n
@@ -619,37 +621,27 @@ class LogWriter:
             message_flags(msg),
         )
 
-    def clocked_frame_hook(self, clock_ns: Callable[[], int]) -> Callable[[can.Message, bool], None]:
-        """A link frame hook logging each frame at ``clock_ns()`` (lockstep: the simulated clock).
+    def clocked_frame_hook(self, clock: TimeSource) -> Callable[[can.Message, bool], None]:
+        """A link frame hook logging each frame at ``clock.time_ns`` when it passes (lockstep: the
+        simulated drive's time, read as an attribute: a third of the hook's cost with a callable).
 
         The hook stages the frame with its time (module docstring): the owner thread packs it with
         the next run of staged records, as :meth:`frame_raw` would. The frame must not change once
         sent, as nothing in the project changes it. A subclass that overrides :meth:`frame_raw` gets
         a hook calling it at once."""
-        frame_raw = self.frame_raw
-
         if type(self).frame_raw is not LogWriter.frame_raw:
+            frame_raw = self.frame_raw
 
             def general(msg: can.Message, is_rx: bool) -> None:
-                frame_raw(clock_ns(), msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", message_flags(msg))
+                frame_raw(
+                    clock.time_ns, msg.arbitration_id, is_rx, msg.dlc, msg.data or b"", message_flags(msg)
+                )
 
             return general
         stage = self._staged_frames.append
 
         def hook(msg: can.Message, is_rx: bool) -> None:
-            stage((clock_ns(), msg, is_rx))
-
-        return hook
-
-    def source_clocked_frame_hook(self, source: TimeSource) -> Callable[[can.Message, bool], None]:
-        """:meth:`clocked_frame_hook` with ``source.time_ns`` as the clock (lockstep: the simulated
-        drive's time, read as an attribute: a third of the hook's cost with a callable clock)."""
-        if type(self).frame_raw is not LogWriter.frame_raw:
-            return self.clocked_frame_hook(lambda: source.time_ns)
-        stage = self._staged_frames.append
-
-        def hook(msg: can.Message, is_rx: bool) -> None:
-            stage((source.time_ns, msg, is_rx))
+            stage((clock.time_ns, msg, is_rx))
 
         return hook
 
@@ -725,9 +717,10 @@ class LogWriter:
         time_ns, state, disturbance_A, applied_current_A, drive_state)`` (firmware_sim's
         ``GroundTruth``: one float each; a multi-axis drive's: a tuple per input) and logs it as
         :meth:`truth` does. The sink stages the tuple (a staging list's ``append``: any thread;
-        module docstring); the owner thread packs it, the single-axis record in one generated call, a
-        multi-axis one and anything that does not pack through :meth:`truth` (which names what did
-        not pack). A subclass that overrides :meth:`truth` gets a sink calling it at once."""
+        module docstring); the owner thread packs a run of them in one generated loop
+        (:func:`dob_hil.log.packers.compile_truth_records`), a multi-axis one and anything that does
+        not pack through :meth:`truth` (which names what did not pack). A subclass that overrides
+        :meth:`truth` gets a sink calling it at once."""
         truth = self.truth
 
         def general(t: tuple[Any, ...]) -> None:
@@ -740,7 +733,7 @@ class LogWriter:
         if type(self).truth is not LogWriter.truth:
             return general
         # generated for the plant's state count (dob_hil.log.packers): no starred argument
-        self._truth_records = compile_truth_record(
+        self._truth_records = compile_truth_records(
             self, self.layout.n_plant_states, self._pack_truth, self._truth_len, general
         )
         return self._staged_truth.append

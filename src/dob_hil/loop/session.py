@@ -160,14 +160,9 @@ def _frame_stamper(
         return msg.arbitration_id, msg.dlc, msg.data or b"", message_flags(msg)
 
     if lockstep_drive is not None:
-        # the drive's clock without its property chain, where the simulated drive offers it
+        # the drive's time without its property chain, where the simulated drive offers it
         source_of = getattr(lockstep_drive, "lockstep_time_source", None)
-        source = source_of() if source_of is not None else None
-        if source is not None:
-            return log.source_clocked_frame_hook(source)
-        reader = getattr(lockstep_drive, "lockstep_clock_ns", None)
-        sim_ns: Callable[[], int] = reader() if reader is not None else lambda: lockstep_drive.time_ns
-        return log.clocked_frame_hook(sim_ns)
+        return log.clocked_frame_hook(source_of() if source_of is not None else lockstep_drive)
     offset_ns = time.monotonic_ns() - time.time_ns()
     clamp = frame_clamp()  # non-decreasing: an own echo's bus time can precede the send's log time
     pending: list[tuple[int, can.Message, bool]] = []
