@@ -56,7 +56,9 @@ class CurrentPath:
         applies, else :meth:`PlantModel.advance`, bit for bit the same) and True. False with the
         plant untouched when a change is pending: the caller integrates change by change.
 
-        One call for the common case of every drive's per-period path (native, CiA 402, ODrive)."""
+        One call for the common case of the per-period paths: the native core's
+        :meth:`~firmware_sim.core.DriveCore.integrate_to`, the CiA 402 fused SYNC, the ODrive
+        period."""
         times = self._times_ns
         if times and times[0] <= t0_ns:
             if len(times) == 1:  # the one change the last period scheduled (apply_due, inline)

@@ -97,6 +97,8 @@ class PlantModel:
         self._A = np.asarray(plant.A, dtype=np.float64)
         self._B = np.asarray(plant.B, dtype=np.float64)
         self._c = [float(v) for v in plant.C[0]]
+        # the output row of a 2-state plant, for the fused periods' inline position()
+        self.c_2state: tuple[float, float] | None = (self._c[0], self._c[1]) if self.n_states == 2 else None
         self._disturbance = disturbance
         self._full = self._matrices(self.cell_s)
         phi, gam = self._full

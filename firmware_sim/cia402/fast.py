@@ -47,7 +47,6 @@ from firmware_sim.truth import GroundTruth
 
 if TYPE_CHECKING:
     from firmware_sim.cia402.core import Cia402Core, TruthSink
-    from firmware_sim.plant import PlantModel
 
 RPDO_OBJECTS = ((ob.CONTROLWORD, 0), (ob.TARGET_TORQUE, 0))
 TPDO_OBJECTS = ((ob.STATUSWORD, 0), (ob.POSITION_ACTUAL, 0))
@@ -122,16 +121,8 @@ def fast_plan(core: Cia402Core) -> FastPlan | None:
         mode_cst=core.mode == ob.MODE_CST,
         max_torque=core.max_torque,
         rated_current_mA=core.rated_current_mA,
-        position_row=_position_row(core.plant),
+        position_row=core.plant.c_2state,
     )
-
-
-def _position_row(plant: PlantModel) -> tuple[float, float] | None:
-    """The output row of a 2-state plant, for :meth:`FastPeriod.sync`'s inline ``plant.position()``."""
-    if plant.n_states != 2:
-        return None
-    c0, c1 = plant._c
-    return c0, c1
 
 
 class FastPeriod:

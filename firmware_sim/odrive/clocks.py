@@ -73,9 +73,9 @@ class OdriveLockstep:
         self._truth_at = -1  # the instant of the last ground-truth record
         self.fast = FAST_PATH  # the per-frame and per-period fast paths (module docstring)
         self._torque_id = core.ids[CmdId.SET_INPUT_TORQUE]
-        c_row = config.plant.C[0]  # the position row, as firmware_sim.plant.PlantModel takes it
+        c_row = core.plant.c_2state
         self._rows_2 = (  # (C row, C A row) of a two-state plant, for the inline sample
-            (float(c_row[0]), float(c_row[1]), *core.vel_row) if len(core.vel_row) == 2 else None
+            (*c_row, *core.vel_row) if c_row is not None and len(core.vel_row) == 2 else None
         )
 
     def service(self) -> int:

@@ -102,7 +102,7 @@ def _append(indent: str) -> str:
     return "".join(f"{indent}{line}\n" for line in lines)
 
 
-def compile_truth_record(
+def compile_truth_records(
     writer: _Batching,
     n_plant_states: int,
     pack: Callable[..., bytes],

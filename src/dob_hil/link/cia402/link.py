@@ -195,7 +195,7 @@ class Cia402DriveLink(ClosingLink):
             ids["SDO_TX"]: self._on_sdo_answer,
         }
         self._own_tx_ids = frozenset((codec.NMT_ID, codec.SYNC_ID, ids["RPDO1"], ids["SDO_RX"]))
-        self._lock = threading.RLock()  # serialises hooks and the drive while the pump runs
+        self._lock = threading.RLock()  # the real-time pump thread against the caller's; held in lockstep too
         self._configuring = False  # SDO answers are expected (enable, until the cyclic phase)
         self._network: _HookedNetwork | None = None
         self._pump: threading.Thread | None = None
@@ -542,8 +542,8 @@ class Cia402DriveLink(ClosingLink):
                         return
             except DobHilError:
                 raise
-            except can.CanError as exc:  # not canopen's to retry as a failed send: a DriveFault
-                raise DriveFault(f"node {self._node}: receiving from the CAN bus failed: {exc}") from exc
+            except can.CanError as exc:  # a receive, or the drive's own send: not canopen's to retry
+                raise DriveFault(f"node {self._node}: the CAN bus failed while configuring: {exc}") from exc
             except Exception as exc:  # service() raised: the embedded drive failed while configured
                 raise DriveFault(f"node {self._node}: configuring the drive: {exc!r}") from exc
 
