@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import random
 from collections import deque
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -112,25 +113,36 @@ def test_the_lockstep_time_source_is_the_core_or_the_drive() -> None:
         bus.shutdown()
 
 
-def _clock_pair(
-    input_delay_samples: int = 0, **sections: dict[str, Any]
-) -> tuple[list[Any], list[tuple[LockstepClock, deque[Any], deque[Any]]]]:
+ClockPair = tuple[list[Any], list[tuple[LockstepClock, deque[Any], deque[Any]]]]
+
+
+@pytest.fixture
+def clock_pair() -> Iterator[Callable[..., ClockPair]]:
     """Two lockstep clocks on the same config, the first fused (as shipped), the second not; each
-    with its in-process bus (to the drive, from the drive). Their truth goes to one list each."""
-    cfg = make_config(**sections)
-    if input_delay_samples:  # the drive's side only (the design would need the delay states)
-        plant = dataclasses.replace(cfg.plant, input_delay_samples=input_delay_samples)
-        cfg = dataclasses.replace(cfg, plant=plant)
-    truths: list[Any] = [[], []]
-    clocks = []
-    for i in range(2):
-        to_drive: deque[Any] = deque()
-        from_drive: deque[Any] = deque()
-        bus = InProcessBus("t", to_drive, from_drive)
-        clock = LockstepClock(bus, cfg, truths[i].append)
-        clock.fused = i == 0
-        clocks.append((clock, to_drive, from_drive))
-    return truths, clocks
+    with its in-process bus (to the drive, from the drive), shut down after the test. Their truth
+    goes to one list each."""
+    buses: list[InProcessBus] = []
+
+    def make(input_delay_samples: int = 0, **sections: dict[str, Any]) -> ClockPair:
+        cfg = make_config(**sections)
+        if input_delay_samples:  # the drive's side only (the design would need the delay states)
+            plant = dataclasses.replace(cfg.plant, input_delay_samples=input_delay_samples)
+            cfg = dataclasses.replace(cfg, plant=plant)
+        truths: list[Any] = [[], []]
+        clocks = []
+        for i in range(2):
+            to_drive: deque[Any] = deque()
+            from_drive: deque[Any] = deque()
+            bus = InProcessBus("t", to_drive, from_drive)
+            buses.append(bus)
+            clock = LockstepClock(bus, cfg, truths[i].append)
+            clock.fused = i == 0
+            clocks.append((clock, to_drive, from_drive))
+        return truths, clocks
+
+    yield make
+    for bus in buses:
+        bus.shutdown()
 
 
 def _frames(q: deque[Any]) -> list[tuple[int, bytes]]:
@@ -148,11 +160,13 @@ def _frames(q: deque[Any]) -> list[tuple[int, bytes]]:
     ],
     ids=["noise-loss-disturbance", "no-disturbance", "input-delay"],
 )
-def test_exchange_matches_the_general_path(sections: dict[str, Any]) -> None:
+def test_exchange_matches_the_general_path(
+    sections: dict[str, Any], clock_pair: Callable[..., ClockPair]
+) -> None:
     """LockstepClock._exchange (command, period, sample, FEEDBACK, truth in one call) sends the
     same frames, hands on the same truth and leaves the same state as the general path, over
     saturated, stale and stopping commands and the heartbeat periods."""
-    truths, clocks = _clock_pair(**sections)
+    truths, clocks = clock_pair(**sections)
     enable = encode_control(ControlFrame(ControlRequest.ENABLE))
     for clock, to_drive, _ in clocks:
         to_drive.append(can.Message(arbitration_id=clock.core.control_id, data=enable, is_extended_id=False))
@@ -198,9 +212,9 @@ def test_exchange_matches_the_general_path(sections: dict[str, Any]) -> None:
         assert clocks[0][0].core.stats.commands_accepted > PERIODS * 0.9
 
 
-def test_exchange_declines_without_changing_anything() -> None:
+def test_exchange_declines_without_changing_anything(clock_pair: Callable[..., ClockPair]) -> None:
     """A declined _exchange leaves the core untouched (the caller then takes the general path)."""
-    truths, clocks = _clock_pair()
+    truths, clocks = clock_pair()
     clock = clocks[0][0]
     before = (clock.core.time_ns, clock.core.plant.state, vars(clock.core.stats).copy())
     assert not clock._exchange(100, 0)  # not ENABLED (and no sample yet)

@@ -54,6 +54,7 @@ def _run(fused: bool, x: list[float]) -> tuple[Any, ...]:
     error = _command(clock, to_drive, 0)  # the fused path must not raise where the general path faults
     core = clock.core
     frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
+    clock.bus.shutdown()
     return error, core.state, core.time_ns, frames, vars(core.stats), core.path.held_A
 
 
@@ -81,6 +82,7 @@ def _runaway(fused: bool) -> tuple[Any, ...]:
             break
     core = clock.core
     frames = [(m.arbitration_id, bytes(m.data)) for m in from_drive]
+    clock.bus.shutdown()
     return error, core.state, core.path.held_A, frames, vars(core.stats), len(truths)
 
 

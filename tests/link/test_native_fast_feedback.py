@@ -24,7 +24,9 @@ FAULT = int(Status.FAULT)
 
 def _link(inbox: deque[can.Message], events: list[LinkEvent]) -> NativeDriveLink:
     bus = InProcessBus("t", inbox, deque())
-    return NativeDriveLink(bus, DriveConfig(encoder_bits=16), event_hook=events.append, clock_ns=lambda: 42)
+    return NativeDriveLink(
+        bus, DriveConfig(encoder_bits=16), event_hook=events.append, clock_ns=lambda: 42, owns_bus=True
+    )
 
 
 def _feedback_stream(n: int) -> list[can.Message]:
@@ -78,6 +80,8 @@ def test_delivered_feedback_matches_on_feedback() -> None:
     assert fast.stats.rx_frames == 5000
     assert fast.stats.encoder_jumps > 0 and fast.stats.stale_feedback > 0 and fast.stats.missed_feedback > 0
     assert delivered > 4000
+    fast.close()
+    general.close()
 
 
 def test_positional_frames_equal_keyword_frames() -> None:

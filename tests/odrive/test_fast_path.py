@@ -17,6 +17,7 @@ import dataclasses
 import math
 import struct
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -340,8 +341,16 @@ def _make_link(bus: can.BusABC, limit_A: float, kt: float) -> OdriveDriveLink:
     )
 
 
-def _link() -> OdriveDriveLink:
-    return _make_link(bus_pair("fast-path-quantize")[0], LIMIT_A, KT)
+@contextmanager
+def _links(n: int, limit_A: float = LIMIT_A, kt: float = KT) -> Iterator[list[OdriveDriveLink]]:
+    """``n`` links on buses of their own, shut down afterwards."""
+    pairs = [bus_pair(f"fast-path-quantize-{i}") for i in range(n)]
+    try:
+        yield [_make_link(host, limit_A, kt) for host, _ in pairs]
+    finally:
+        for pair in pairs:
+            for bus in pair:
+                bus.shutdown()
 
 
 CURRENTS = st.one_of(
@@ -354,8 +363,13 @@ CURRENTS = st.one_of(
 
 @given(u=CURRENTS)
 def test_quantize_fast_equals_general(u: float) -> None:
-    fast_link = _link()
-    general_link = _link()
+    with _links(2) as (fast_link, general_link):
+        _quantize_fast_equals_general(u, fast_link, general_link)
+
+
+def _quantize_fast_equals_general(
+    u: float, fast_link: OdriveDriveLink, general_link: OdriveDriveLink
+) -> None:
     general_link.fast = False
     reference = TorqueQuantizer(LIMIT_A, KT).quantize((u,))
     fast = fast_link.quantize((u,))
@@ -377,22 +391,26 @@ def test_quantize_tiny_limit_takes_the_general_path() -> None:
     """A current whose float32 torque maps back beyond the limit is stepped one ulp towards zero
     (the general path); the fast path never sends it unstepped."""
     for limit_A, kt in ((0.1, 0.3), (0.7, 0.0827), (1.0 / 3.0, 0.1), (2.5e-3, 7.0)):
-        link = _make_link(bus_pair("fast-path-limit")[0], limit_A, kt)
         ref = TorqueQuantizer(limit_A, kt)
-        for u in (limit_A, -limit_A, math.nextafter(limit_A, 0.0), limit_A * 0.999999):
-            codes, applied, saturated = link.quantize((u,))
-            assert (codes, applied, saturated) == ref.quantize((u,))
-            assert abs(applied[0]) <= limit_A
+        with _links(1, limit_A, kt) as (link,):
+            for u in (limit_A, -limit_A, math.nextafter(limit_A, 0.0), limit_A * 0.999999):
+                codes, applied, saturated = link.quantize((u,))
+                assert (codes, applied, saturated) == ref.quantize((u,))
+                assert abs(applied[0]) <= limit_A
 
 
 def test_general_switch_reaches_both_sides(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """FAST_PATH = False is read when the drive's clock and the link are built."""
     config = odrive_config(tmp_path)
     _force_general(monkeypatch, True)
-    host, drive_end = bus_pair("fast-path-switch")
-    drive = SimulatedOdrive(drive_end, config)
-    link = OdriveDriveLink(host, config.drive, odrive_options(config), config.plant.period_ns)
-    assert drive._lockstep is not None and not drive._lockstep.fast and not link.fast
-    _force_general(monkeypatch, False)
-    assert SimulatedOdrive(bus_pair("fast-path-switch-2")[1], config)._lockstep.fast  # type: ignore[union-attr]
-    assert np.isfinite(link.quantize((0.1,))[1][0])
+    buses = [*bus_pair("fast-path-switch"), *bus_pair("fast-path-switch-2")]
+    try:
+        drive = SimulatedOdrive(buses[1], config)
+        link = OdriveDriveLink(buses[0], config.drive, odrive_options(config), config.plant.period_ns)
+        assert drive._lockstep is not None and not drive._lockstep.fast and not link.fast
+        _force_general(monkeypatch, False)
+        assert SimulatedOdrive(buses[3], config)._lockstep.fast  # type: ignore[union-attr]
+        assert np.isfinite(link.quantize((0.1,))[1][0])
+    finally:
+        for bus in buses:
+            bus.shutdown()
