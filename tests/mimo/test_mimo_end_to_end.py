@@ -100,6 +100,10 @@ def test_lockstep_the_dob_halves_the_tracking_error_on_both_outputs(
 RT_ATTEMPTS = 3
 SETTLE_S = 0.3  # the plant's course after a stall: a slow design's transient from far off
 MIN_UNDISTURBED = 100  # truth records (0.1 s) to measure a run's error on
+# a run that missed more of its feedback than this is not real-time control: measured on a
+# 2-CPU VM, 1-3 % of the 1,000 samples missing idle, 13-22 % beside two CPU hogs, 30-76 % beside
+# four or more (the embedded drive's threads share the loop's process)
+MAX_MISSING_FRACTION = 1 / 3
 
 
 def test_real_time_the_dob_halves_the_tracking_error_on_both_outputs(
@@ -112,8 +116,10 @@ def test_real_time_the_dob_halves_the_tracking_error_on_both_outputs(
     The error is measured on the truth records no stall preceded within 0.3 s
     (:func:`undisturbed_truth`): a stall (the drive's timer thread or the loop starved for tens of
     ms on a busy 2-CPU machine) holds the currents open loop and throws the plant off its course,
-    with or without the DOB. A pair of runs without enough undisturbed periods is run again (at
-    most 3 times); if the machine never gives real time the CPU, the test says so and is skipped.
+    with or without the DOB. A pair of runs without enough undisturbed periods, or with a run that
+    missed more than a third of its feedback (the loop answered too few samples to be closed-loop
+    control), is run again (at most 3 times); if the machine never gives real time the CPU, the
+    test says so and is skipped.
     A pair whose ratio falls short is run again too (a busy runner once made a DOB-on run miss
     many answers in a row short of a stall); the test fails if two pairs fall short and none
     halves the error on both outputs.
@@ -131,23 +137,30 @@ def test_real_time_the_dob_halves_the_tracking_error_on_both_outputs(
             _check_run(config, summary, data, drive, log)
             assert summary.mode == "realtime" and summary.samples == 1000
             missing[dob] = summary.missing_samples
+            if summary.missing_samples > MAX_MISSING_FRACTION * summary.samples:
+                starved.append(f"DOB {'on' if dob else 'off'}: {summary.missing_samples} samples missing")
+                break
             keep = undisturbed_truth(data, settle_s=SETTLE_S)
             t_ns = data.truth["time_ns"].astype(np.int64)
             from_ns = int(data.samples["time_ns"][round(ERROR_FROM_S / config.plant.period_s)])
             measured = keep & (t_ns >= from_ns)
             if np.count_nonzero(measured) < MIN_UNDISTURBED:
-                starved.append(f"DOB {'on' if dob else 'off'}: {np.count_nonzero(measured)}")
+                starved.append(f"DOB {'on' if dob else 'off'}: {np.count_nonzero(measured)} undisturbed")
                 break
             rms[dob] = _errors(config, data, keep)
         if len(rms) == 2:
             ratio = rms[False] / rms[True]
             if np.all(ratio >= 2.0):
                 return
-            short.append(f"ratio {ratio.round(2).tolist()} (missing with the DOB: {missing[True]})")
+            short.append(
+                f"ratio {ratio.round(2).tolist()} "
+                f"(missing: {missing[True]} with the DOB, {missing[False]} without)"
+            )
     assert len(short) < 2, f"the DOB did not halve the error on both outputs: {short}"
     pytest.skip(
-        f"the machine starved the real-time loop in {RT_ATTEMPTS} attempts (undisturbed periods "
-        f"per run: {'; '.join(starved)}; {MIN_UNDISTURBED} needed; short of 2x: {short})"
+        f"the machine starved the real-time loop in {RT_ATTEMPTS} attempts ({'; '.join(starved)}; "
+        f"at least {MIN_UNDISTURBED} undisturbed periods and at most {MAX_MISSING_FRACTION:.0%} of "
+        f"the samples missing needed; short of 2x: {short})"
     )
 
 
