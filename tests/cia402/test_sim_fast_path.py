@@ -22,6 +22,7 @@ from typing import Any
 
 import can
 import pytest
+from plants import PLANT_3
 from sim_support import NODE, make_config, sdo_request
 
 from dob_hil.config import Config
@@ -294,19 +295,11 @@ def test_frame_by_frame_the_drive_sends_and_does_the_same_with_and_without_the_f
     assert any(aid == 0x080 + NODE for aid, _ in fast.sent)  # its EMCY
 
 
-# a 3-state plant (a current loop's lag): plant.position() is math.fsum, which raises ValueError
-# for +inf and -inf among its terms, where a 2-state position gives NaN
-PLANT_3 = {
-    "A": [[0.0, 1.0, 0.0], [0.0, -50.0, 3000.0], [0.0, 0.0, -2000.0]],
-    "B": [[0.0], [0.0], [2000.0]],
-    "C": [[1.0, 0.001, 0.0]],
-    "state_names": None,
-}
-
-
 def test_a_position_that_cannot_be_computed_is_an_encoder_fault_on_both_paths(
     rig_of: Callable[..., Rig], fast_syncs: Counter
 ) -> None:
+    """A 3-state plant's position() is math.fsum, which raises ValueError for +inf and -inf among
+    its terms (a 2-state position gives NaN): an encoder fault on both paths."""
     config = make_config(plant=PLANT_3, **{"design.estimator": {"Lc": None}, "design.feedback": {"Kc": None}})
     rigs = []
     for fast_path in (True, False):

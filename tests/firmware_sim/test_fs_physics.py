@@ -10,6 +10,7 @@ import pytest
 import scipy.integrate
 import scipy.signal
 from fs_support import make_config
+from plants import A_3, B_3, C_3, PLANT_3
 
 from dob_hil.errors import ConfigError
 from firmware_sim.disturbance import Disturbance
@@ -139,10 +140,8 @@ def test_many_small_pieces_equal_one_span() -> None:
 
 def test_general_state_dimension_matches_lsim() -> None:
     """A 3-state plant (current loop lag + damped axis) through the generic path; C mixes states."""
-    A = [[0.0, 1.0, 0.0], [0.0, -50.0, 3000.0], [0.0, 0.0, -2000.0]]
-    B = [[0.0], [0.0], [2000.0]]
-    C = [[1.0, 0.001, 0.0]]
-    plant = plant_model(5, None, A=A, B=B, C=C, state_names=None)
+    A, B, C = A_3, B_3, C_3
+    plant = plant_model(5, None, **PLANT_3)
     u = [0.2] * 50 + [-0.1] * 50
     for k, uk in enumerate(u):
         plant.advance(k * 300_000, (k + 1) * 300_000, uk)

@@ -16,6 +16,7 @@ import pytest
 from fs_support import make_config
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from plants import PLANT_3
 
 from dob_hil.config import Config
 from firmware_sim.actuator import CurrentPath
@@ -31,12 +32,6 @@ DISTURBANCES: dict[str, list[dict[str, object]] | None] = {
         {"kind": "step", "amplitude_A": -0.15, "start_s": 0.0123},
         {"kind": "noise", "std_A": 0.05, "seed": 7},
     ],
-}
-PLANT_3 = {
-    "A": [[0.0, 1.0, 0.0], [0.0, -50.0, 3000.0], [0.0, 0.0, -2000.0]],
-    "B": [[0.0], [0.0], [2000.0]],
-    "C": [[1.0, 0.001, 0.0]],
-    "state_names": None,
 }
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
